@@ -1,0 +1,75 @@
+"""Atomic file output: a failed or interrupted run never leaves a half-written file."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+from .errors import InputError, OutputError
+
+
+def check_writable(path: str | os.PathLike) -> Path:
+    """Fail early, before hours of work, if `path` cannot be created."""
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise OutputError(f"output path {p} is a directory; give a file name")
+    if not parent.is_dir():
+        raise OutputError(f"cannot write {p}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise OutputError(f"cannot write {p}: folder {parent} is not writable")
+    return p
+
+
+def ensure_dir(path: str | os.PathLike) -> Path:
+    """Create an output folder, or fail with one clear line."""
+    p = Path(path)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"cannot create folder {p}: {e.strerror or e}") from None
+    if not os.access(p, os.W_OK):
+        raise OutputError(f"cannot write into folder {p}: permission denied")
+    return p
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None):
+    """Yield a temporary path next to `path`; rename it over `path` only on success.
+
+    Writers that need a file name (cv2.FileStorage, cv2.imwrite, np.savez) write to the
+    yielded path; the extension is kept so such writers pick the right format.
+    """
+    p = check_writable(path)
+    suffix = p.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{suffix}", dir=p.parent or ".")
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "w", **kw):
+    """Open a temporary file for writing; it replaces `path` only when the block succeeds."""
+    with atomic_path(path) as tmp, open(tmp, mode, **kw) as f:
+        yield f
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def require_file(path: str | os.PathLike, what: str = "file") -> Path:
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{what} {p} not found")
+    if p.is_dir():
+        raise InputError(f"{what} {p} is a folder, expected a file")
+    if not os.access(p, os.R_OK):
+        raise InputError(f"{what} {p} is not readable (permission denied)")
+    return p

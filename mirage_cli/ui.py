@@ -1,0 +1,55 @@
+"""Terminal output for people: warnings, summaries and progress bars (silent when quiet)."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import sys
+
+import click
+
+log = logging.getLogger("mirage")
+
+_state = {"quiet": False, "verbose": 0}
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record):
+        if record.levelno >= logging.WARNING:
+            return f"mirage: {record.levelname.lower()}: {record.getMessage()}"
+        return record.getMessage()
+
+
+def setup(verbose: int = 0, quiet: bool = False) -> None:
+    _state.update(quiet=quiet, verbose=verbose)
+    log.handlers.clear()
+    h = logging.StreamHandler(sys.stderr)
+    h.setFormatter(_Formatter())
+    log.addHandler(h)
+    log.propagate = False
+    log.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
+
+
+def echo(msg: str = "") -> None:
+    """A line of the human-readable summary (stdout; suppressed by --quiet)."""
+    if not _state["quiet"]:
+        click.echo(msg)
+
+
+def progress_enabled() -> bool:
+    return not _state["quiet"] and sys.stdout.isatty()
+
+
+@contextlib.contextmanager
+def progress(length: int | None, label: str):
+    """A click progress bar when stdout is a terminal, else a no-op with the same API."""
+    if progress_enabled():
+        with click.progressbar(length=length, label=label, show_pos=True,
+                               show_eta=True) as bar:
+            yield bar
+    else:
+        class _Null:
+            def update(self, n, current_item=None):
+                pass
+
+        yield _Null()
