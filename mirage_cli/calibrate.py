@@ -1,0 +1,471 @@
+"""Camera calibration from chessboard or ChArUco views: detection, calibration, diagnostics.
+
+Pure core: no terminal output. Problems with the data are returned as warning strings
+(the CLI prints them); failures the user can fix raise InputError.
+
+Corner accuracy matters more than anything else here. findChessboardCornersSB finds
+boards robustly (blur, lighting, distortion) but its corners are ~0.1 px noisier than a
+saddle-point refinement, so every detection is refined with cornerSubPix. The refinement
+window is sized from the corner spacing in that view: a fixed 23x23 window (OpenCV's
+sample) reaches across squares on small boards and drags corners by several pixels.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+from .media import iter_video, read_image
+
+SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
+DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+MIN_VIEWS = 3
+MIN_CHARUCO_CORNERS = 8
+
+
+# --- board --------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Board:
+    """A calibration target. For a chessboard cols x rows are inner corners; for a
+    ChArUco board they are squares (what board generators ask for)."""
+
+    cols: int
+    rows: int
+    square_m: float
+    pattern: str = "chessboard"  # chessboard | charuco
+    marker_m: float | None = None  # ChArUco marker side; default 0.75 * square
+    dictionary: str = "DICT_5X5_100"
+    legacy: bool = False  # ChArUco boards made with OpenCV < 4.6 (even row count)
+
+    def __post_init__(self):
+        if self.cols < 2 or self.rows < 2:
+            raise InputError(f"board must be at least 2x2, got {self.cols}x{self.rows}")
+        if not self.square_m > 0:
+            raise InputError(f"square size must be > 0, got {self.square_m}")
+        if self.pattern not in ("chessboard", "charuco"):
+            raise InputError(f"unknown pattern '{self.pattern}' (chessboard or charuco)")
+
+    @property
+    def label(self) -> str:
+        return f"{self.cols}x{self.rows}"
+
+    @property
+    def object_points(self) -> np.ndarray:
+        """(N, 3) float32 corner positions in metres on the board plane (z = 0)."""
+        if self.pattern == "charuco":
+            return self.charuco().getChessboardCorners().astype(np.float32).reshape(-1, 3)
+        grid = np.mgrid[0 : self.cols, 0 : self.rows].T.reshape(-1, 2)
+        pts = np.zeros((len(grid), 3), np.float32)
+        pts[:, :2] = grid * self.square_m
+        return pts
+
+    def charuco(self):
+        """The cv2.aruco.CharucoBoard (built on demand: it is not picklable)."""
+        name = self.dictionary.upper()
+        name = name if name.startswith("DICT_") else f"DICT_{name}"
+        dict_id = getattr(cv2.aruco, name, None)
+        if dict_id is None:
+            raise InputError(f"unknown ArUco dictionary '{self.dictionary}' (e.g. DICT_5X5_100)")
+        marker = self.marker_m if self.marker_m is not None else 0.75 * self.square_m
+        if not 0 < marker < self.square_m:
+            raise InputError(f"marker size must be in (0, square size), got {marker}")
+        try:
+            dictionary = cv2.aruco.getPredefinedDictionary(dict_id)
+            board = cv2.aruco.CharucoBoard(
+                (self.cols, self.rows), self.square_m, marker, dictionary
+            )
+            board.setLegacyPattern(self.legacy)
+        except cv2.error as e:
+            raise InputError(f"cannot build ChArUco board {self.label}: {_cv_msg(e)}") from None
+        return board
+
+
+# --- detection ----------------------------------------------------------------------------
+@dataclass
+class View:
+    """Board corners found in one image or video frame."""
+
+    name: str  # file name or "frame 123"
+    corners: np.ndarray  # (N, 2) float32 pixels
+    ids: np.ndarray  # (N,) int: index into Board.object_points
+    method: str  # sb | classic | charuco
+    frame: int | None = None
+    time_s: float | None = None
+
+
+@dataclass
+class Detections:
+    views: list[View]
+    image_size: tuple[int, int]  # (width, height)
+    examined: int  # images or frames looked at
+    not_found: list[str] = field(default_factory=list)
+    unreadable: list[str] = field(default_factory=list)
+    duplicates: int = 0  # video frames skipped because the board had not moved
+    warnings: list[str] = field(default_factory=list)
+
+
+def find_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Corners (N,2), their ids and the detector used, or None when no board is seen."""
+    try:
+        if board.pattern == "charuco":
+            return _find_charuco(gray, board)
+        return _find_chessboard(gray, board)
+    except cv2.error as e:
+        raise InputError(f"corner detection failed: {_cv_msg(e)}") from None
+
+
+def _find_chessboard(gray, board: Board):
+    size = (board.cols, board.rows)
+    method = "sb"
+    ok, corners = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if not ok:
+        method = "classic"
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        ok, corners = cv2.findChessboardCorners(gray, size, flags=flags)
+    if not ok:
+        method = "sb"
+        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
+        ok, corners = cv2.findChessboardCornersSB(gray, size, flags=flags)
+    if not ok or corners is None:
+        return None
+    corners = corners.reshape(board.rows, board.cols, 2).astype(np.float32)
+    corners = refine_corners(gray, corners).reshape(-1, 2)
+    return corners, np.arange(len(corners)), method
+
+
+def refine_corners(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """cornerSubPix with a window that stays inside the squares around each corner.
+
+    `grid` is (rows, cols, 2); the half-window is a quarter of the smallest spacing
+    between neighbouring corners, clamped to 2..8 px.
+    """
+    spacing = min(
+        np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
+        np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
+    )
+    half = int(np.clip(spacing // 4, 2, 8))
+    pts = np.ascontiguousarray(grid.reshape(-1, 1, 2), np.float32)
+    cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), SUBPIX_CRITERIA)
+    return pts.reshape(grid.shape)
+
+
+def _find_charuco(gray, board: Board):
+    detector = cv2.aruco.CharucoDetector(board.charuco())
+    corners, ids, _, _ = detector.detectBoard(gray)
+    if corners is None or ids is None or len(ids) < MIN_CHARUCO_CORNERS:
+        return None
+    corners = corners.reshape(-1, 2).astype(np.float32)
+    ids = ids.ravel().astype(int)
+    # refine as for a chessboard; spacing from the nearest neighbour of each corner
+    d = np.linalg.norm(corners[:, None] - corners[None], axis=2)
+    np.fill_diagonal(d, np.inf)
+    half = int(np.clip(np.median(d.min(axis=1)) // 4, 2, 8))
+    pts = np.ascontiguousarray(corners.reshape(-1, 1, 2))
+    cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), SUBPIX_CRITERIA)
+    return pts.reshape(-1, 2), ids, "charuco"
+
+
+def detect_images(
+    paths: Sequence[Path],
+    board: Board,
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Detections:
+    """Find the board in each image, in parallel (OpenCV releases the GIL)."""
+    workers = default_workers() if workers is None else max(1, workers)
+
+    def one(path: Path):
+        try:
+            gray = read_image(path, gray=True)
+        except InputError as e:
+            return path, None, None, str(e)
+        return path, gray.shape[::-1], find_corners(gray, board), None
+
+    views, not_found, unreadable, warnings = [], [], [], []
+    sizes: dict[tuple[int, int], str] = {}
+    with ThreadPoolExecutor(workers) as pool:
+        for path, size, found, err in pool.map(one, paths):
+            if progress:
+                progress(1)
+            if err:
+                unreadable.append(path.name)
+                warnings.append(f"skipped {err}")
+                continue
+            sizes.setdefault(size, path.name)
+            if found is None:
+                not_found.append(path.name)
+            else:
+                views.append(View(path.name, *found))
+    if len(sizes) > 1:
+        desc = ", ".join(f"{n} is {w}x{h}" for (w, h), n in sizes.items())
+        raise InputError(
+            f"images have different sizes ({desc}); calibrate one camera resolution at a time"
+        )
+    if not sizes:
+        raise InputError(f"none of the {len(paths)} images could be read")
+    return Detections(
+        views, next(iter(sizes)), len(paths), not_found, unreadable, warnings=warnings
+    )
+
+
+def detect_video(
+    path: Path,
+    board: Board,
+    every: int = 10,
+    min_motion_px: float = 8.0,
+    workers: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Detections:
+    """Find the board in every `every`-th frame; drop views where it has barely moved.
+
+    Near-duplicate views add no information but weight that pose more than others.
+    """
+    workers = default_workers() if workers is None else max(1, workers)
+
+    def one(item):
+        index, t, frame = item
+        return index, t, find_corners(frame, board)
+
+    found: list[View] = []
+    not_found: list[str] = []
+    size = None
+    examined = 0
+    with ThreadPoolExecutor(workers) as pool:
+        for chunk in _chunks(iter_video(path, every=every, gray=True), 4 * workers):
+            size = size or chunk[0][2].shape[::-1]
+            for index, t, res in pool.map(one, chunk):
+                examined += 1
+                if progress:
+                    progress(1)
+                if res is None:
+                    not_found.append(f"frame {index}")
+                else:
+                    found.append(View(f"frame {index}", *res, frame=index, time_s=t))
+    if size is None:
+        raise InputError(f"video {path} has no readable frames")
+    views, last = [], None
+    for v in found:
+        if last is not None and _motion_px(last, v) < min_motion_px:
+            continue
+        views.append(v)
+        last = v
+    return Detections(views, size, examined, not_found, duplicates=len(found) - len(views))
+
+
+def _motion_px(a: View, b: View) -> float:
+    """Median displacement of the corners two views share (inf when they share few)."""
+    common, ia, ib = np.intersect1d(a.ids, b.ids, return_indices=True)
+    if len(common) < 4:
+        return math.inf
+    return float(np.median(np.linalg.norm(a.corners[ia] - b.corners[ib], axis=1)))
+
+
+def _chunks(it: Iterable, n: int) -> Iterable[list]:
+    chunk = []
+    for x in it:
+        chunk.append(x)
+        if len(chunk) == n:
+            yield chunk
+            chunk = []
+    if chunk:
+        yield chunk
+
+
+def default_workers() -> int:
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+# --- calibration --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CalibOptions:
+    model: int = 5  # 5: k1 k2 p1 p2 k3; 8: rational model k1..k6
+    fix_aspect: bool = False
+    fix_principal_point: bool = False
+    zero_tangent: bool = False
+    reject_factor: float = 3.0  # reject views with RMS > max(factor * median, median + margin)
+    reject_margin_px: float = 0.5
+    max_view_error_px: float | None = None  # absolute per-view limit instead of the rule
+    max_views: int = 80  # more views than this are subsampled evenly (speed)
+
+    @property
+    def flags(self) -> int:
+        f = 0
+        if self.model == 8:
+            f |= cv2.CALIB_RATIONAL_MODEL
+        elif self.model != 5:
+            raise InputError(f"distortion model must be 5 or 8 coefficients, got {self.model}")
+        if self.fix_aspect:
+            f |= cv2.CALIB_FIX_ASPECT_RATIO
+        if self.fix_principal_point:
+            f |= cv2.CALIB_FIX_PRINCIPAL_POINT
+        if self.zero_tangent:
+            f |= cv2.CALIB_ZERO_TANGENT_DIST
+        return f
+
+
+@dataclass
+class Calibration:
+    K: np.ndarray
+    dist: np.ndarray
+    image_size: tuple[int, int]
+    rms_px: float
+    views: list[View]  # views used
+    view_errors_px: np.ndarray  # per-view RMS of the views used
+    rejected: list[tuple[View, float]]  # views dropped as outliers, with their RMS
+    std_intrinsics: dict[str, float]  # 1-sigma of fx fy cx cy k1 k2 ...
+    tilts_deg: np.ndarray  # angle between board normal and optical axis, per view
+    warnings: list[str] = field(default_factory=list)
+    threshold_px: float | None = None  # per-view RMS limit used for rejection
+
+
+def calibrate(det: Detections, board: Board, opts: CalibOptions = CalibOptions()) -> Calibration:
+    """Calibrate, drop outlier views, recalibrate; add warnings about weak data."""
+    views = list(det.views)
+    if len(views) < MIN_VIEWS:
+        raise InputError(_too_few_message(det, board))
+    warnings: list[str] = []
+    if len(views) > opts.max_views:
+        keep = np.linspace(0, len(views) - 1, opts.max_views).round().astype(int)
+        warnings.append(f"{len(views)} views found; using {opts.max_views} spread evenly")
+        views = [views[i] for i in keep]
+
+    rejected: list[tuple[View, float]] = []
+    threshold = None
+    res = _calibrate_views(views, board, det.image_size, opts)
+    for _ in range(3):  # reject, recalibrate; a second round catches masked outliers
+        errs = res[-1]
+        med = float(np.median(errs))
+        threshold = (
+            opts.max_view_error_px
+            if opts.max_view_error_px is not None
+            else max(opts.reject_factor * med, med + opts.reject_margin_px)
+        )
+        bad = errs > threshold
+        if not bad.any() or len(views) - bad.sum() < MIN_VIEWS:
+            break
+        rejected += [(v, float(e)) for v, e, b in zip(views, errs, bad, strict=True) if b]
+        views = [v for v, b in zip(views, bad, strict=True) if not b]
+        res = _calibrate_views(views, board, det.image_size, opts)
+
+    rms, K, dist, rvecs, _tvecs, std, errs = res
+    n_dist = 8 if opts.model == 8 else 5
+    dist = dist.ravel()[:n_dist]
+    std = std.ravel()
+    names = ("fx", "fy", "cx", "cy", *DIST_NAMES[:n_dist])
+    std_map = {n: float(s) for n, s in zip(names, std[: len(names)], strict=True)}
+    tilts = np.array([_tilt_deg(r) for r in rvecs])
+    calib = Calibration(
+        K,
+        dist,
+        det.image_size,
+        float(rms),
+        views,
+        errs,
+        rejected,
+        std_map,
+        tilts,
+        warnings,
+        threshold,
+    )
+    calib.warnings += weak_data_warnings(calib)
+    return calib
+
+
+def _calibrate_views(views, board, size, opts):
+    obj_all = board.object_points
+    obj = [np.ascontiguousarray(obj_all[v.ids]) for v in views]
+    img = [np.ascontiguousarray(v.corners.reshape(-1, 1, 2), np.float32) for v in views]
+    K0 = np.eye(3)  # with FIX_ASPECT_RATIO only fx/fy of the guess is used: 1
+    try:
+        rms, K, dist, rvecs, tvecs, std, _ext, errs = cv2.calibrateCameraExtended(
+            obj, img, size, K0, None, flags=opts.flags
+        )
+    except cv2.error as e:
+        raise InputError(
+            f"calibration failed: {_cv_msg(e)} (are the views too similar, "
+            "or the board size wrong?)"
+        ) from None
+    if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise InputError("calibration diverged; use more views, tilted in different directions")
+    return rms, K, dist, rvecs, tvecs, std, np.asarray(errs, float).ravel()
+
+
+def _tilt_deg(rvec) -> float:
+    R, _ = cv2.Rodrigues(np.asarray(rvec, float))
+    return float(np.degrees(np.arccos(np.clip(abs(R[2, 2]), 0.0, 1.0))))
+
+
+def coverage(views: Sequence[View], image_size: tuple[int, int], grid=(8, 6)) -> float:
+    """Share of cells in a grid over the image that contain at least one corner."""
+    w, h = image_size
+    pts = np.concatenate([v.corners for v in views])
+    cx = np.clip((pts[:, 0] / w * grid[0]).astype(int), 0, grid[0] - 1)
+    cy = np.clip((pts[:, 1] / h * grid[1]).astype(int), 0, grid[1] - 1)
+    return len(np.unique(cy * grid[0] + cx)) / (grid[0] * grid[1])
+
+
+def weak_data_warnings(
+    c: Calibration, edge_frac: float = 0.15, tilt_deg: float = 15.0, min_views: int = 10
+) -> list[str]:
+    """Why the result may be poor even though calibration succeeded."""
+    out = []
+    if len(c.views) < min_views:
+        out.append(f"only {len(c.views)} views used; 10-30 views give a reliable calibration")
+    w, h = c.image_size
+    pts = np.concatenate([v.corners for v in c.views])
+    gaps = {
+        "left": pts[:, 0].min() / w,
+        "right": (w - pts[:, 0].max()) / w,
+        "top": pts[:, 1].min() / h,
+        "bottom": (h - pts[:, 1].max()) / h,
+    }
+    far = [k for k, g in gaps.items() if g > edge_frac]
+    if far:
+        out.append(
+            f"corners never come near the {'/'.join(far)} image edge(s); distortion "
+            f"there is extrapolated (coverage {coverage(c.views, c.image_size):.0%}); "
+            "add views with the board near the edges and corners"
+        )
+    if c.tilts_deg.max() < tilt_deg:
+        out.append(
+            f"all views are nearly fronto-parallel (max tilt {c.tilts_deg.max():.0f} "
+            "deg); focal length is poorly determined; tilt the board 20-45 deg"
+        )
+    if c.rms_px > 1.0:
+        out.append(
+            f"RMS reprojection error {c.rms_px:.2f} px > 1 px; check board size, "
+            "square size, focus and motion blur"
+        )
+    return out
+
+
+def _too_few_message(det: Detections, board: Board) -> str:
+    n = len(det.views)
+    what = "frames" if det.views and det.views[0].frame is not None else "images"
+    if n == 0:
+        hint = ""
+        if board.pattern == "chessboard":
+            hint = (
+                f"; check --board (inner corners, COLSxROWS) or try --board "
+                f"{board.rows}x{board.cols}"
+            )
+        else:
+            hint = "; check --board (squares), --dictionary and --marker"
+        return f"no {board.label} {board.pattern} found in any of the {det.examined} {what}{hint}"
+    return (
+        f"only {n} usable view(s) of the {board.label} {board.pattern} in {det.examined} "
+        f"{what}; need at least {MIN_VIEWS} (10-30 recommended)"
+    )
+
+
+def _cv_msg(e: cv2.error) -> str:
+    s = str(e).strip()
+    return s.splitlines()[-1] if s else "OpenCV error"
