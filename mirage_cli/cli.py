@@ -41,6 +41,8 @@ def cli(ctx, config_path, verbose, quiet, debug):
 
 def _register() -> None:
     """Commands are added here as they start to work (one module per stage)."""
+    from .calibrate_cli import calibrate
+    cli.add_command(calibrate)
 
 
 _register()

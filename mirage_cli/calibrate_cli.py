@@ -1,0 +1,277 @@
+"""`mirage calibrate`: thin CLI over mirage_cli.calibrate (options, summary, report plot)."""
+
+from __future__ import annotations
+
+import re
+
+import click
+import numpy as np
+
+from . import ui
+from .calibrate import Board, CalibOptions, Calibration, Detections, detect_images, detect_video
+from .calibrate import calibrate as run_calibration
+from .camera import Camera
+from .fileio import atomic_path, check_writable
+from .media import resolve_inputs, video_info
+
+_K_NAMES = ("fx", "fy", "cx", "cy")
+
+
+def _parse_board(ctx, param, value):
+    if value is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", str(value))
+    if not m:
+        raise click.BadParameter(f"'{value}' is not COLSxROWS, e.g. 9x6", ctx, param)
+    cols, rows = int(m.group(1)), int(m.group(2))
+    if cols < 2 or rows < 2:
+        raise click.BadParameter(f"'{value}': both COLS and ROWS must be >= 2", ctx, param)
+    return cols, rows
+
+
+def _positive(ctx, param, value):
+    if value is not None and not value > 0:
+        raise click.BadParameter(f"must be > 0, got {value}", ctx, param)
+    return value
+
+
+@click.command("calibrate")
+@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
+@click.option(
+    "--board",
+    required=True,
+    callback=_parse_board,
+    help="Chessboard: inner corners COLSxROWS (e.g. 9x6). ChArUco: squares.",
+)
+@click.option(
+    "--square",
+    type=float,
+    required=True,
+    callback=_positive,
+    help="Square side in metres (e.g. 0.025).",
+)
+@click.option(
+    "-o",
+    "--output",
+    default="camera.yaml",
+    show_default=True,
+    type=click.Path(dir_okay=False),
+    help="Camera YAML to write.",
+)
+@click.option(
+    "--pattern",
+    type=click.Choice(["chessboard", "charuco"]),
+    default="chessboard",
+    show_default=True,
+)
+@click.option(
+    "--marker",
+    type=float,
+    default=None,
+    callback=_positive,
+    help="ChArUco marker side in metres [default: 0.75 x square].",
+)
+@click.option(
+    "--dictionary", default="DICT_5X5_100", show_default=True, help="ChArUco ArUco dictionary."
+)
+@click.option(
+    "--legacy-pattern",
+    is_flag=True,
+    help="ChArUco board made with OpenCV < 4.6 (even number of rows).",
+)
+@click.option(
+    "--every",
+    type=click.IntRange(min=1),
+    default=10,
+    show_default=True,
+    help="Video: look at every K-th frame.",
+)
+@click.option(
+    "--min-motion",
+    type=float,
+    default=8.0,
+    show_default=True,
+    help="Video: skip views whose corners moved less than this (px).",
+)
+@click.option(
+    "--model",
+    type=click.Choice(["5", "8"]),
+    default="5",
+    show_default=True,
+    help="Distortion coefficients: 5 (k1 k2 p1 p2 k3) or 8 (rational).",
+)
+@click.option("--fix-aspect", is_flag=True, help="Estimate one focal length (fx = fy).")
+@click.option("--fix-principal-point", is_flag=True, help="Keep cx, cy at the image centre.")
+@click.option("--zero-tangent", is_flag=True, help="Fix p1 = p2 = 0.")
+@click.option(
+    "--max-view-error",
+    type=float,
+    default=None,
+    callback=_positive,
+    help="Reject views with RMS above this (px) [default: > max(3x median, median + 0.5 px)].",
+)
+@click.option(
+    "--reject-factor",
+    type=float,
+    default=3.0,
+    show_default=True,
+    callback=_positive,
+    help="Outlier views: RMS above this x median.",
+)
+@click.option(
+    "--report",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write a PNG with corner coverage and per-view errors.",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Detection threads [default: CPUs, max 4].",
+)
+def calibrate(
+    inputs,
+    board,
+    square,
+    output,
+    pattern,
+    marker,
+    dictionary,
+    legacy_pattern,
+    every,
+    min_motion,
+    model,
+    fix_aspect,
+    fix_principal_point,
+    zero_tangent,
+    max_view_error,
+    reject_factor,
+    report,
+    workers,
+):
+    """Calibrate the camera from chessboard or ChArUco images, a folder, a glob or a video.
+
+    \b
+    Example:
+      mirage calibrate calib/*.jpg --board 9x6 --square 0.025 -o camera.yaml
+    """
+    check_writable(output)  # fail now, not after minutes of detection
+    if report:
+        check_writable(report)
+    target = Board(board[0], board[1], square, pattern, marker, dictionary, legacy_pattern)
+    opts = CalibOptions(
+        model=int(model),
+        fix_aspect=fix_aspect,
+        fix_principal_point=fix_principal_point,
+        zero_tangent=zero_tangent,
+        reject_factor=reject_factor,
+        max_view_error_px=max_view_error,
+    )
+    media = resolve_inputs(inputs, what="board images")
+    if media.is_video:
+        n = video_info(media.video).frames
+        with ui.progress((n + every - 1) // every if n else None, "detecting") as bar:
+            det = detect_video(media.video, target, every, min_motion, workers, bar.update)
+    else:
+        with ui.progress(len(media.images), "detecting") as bar:
+            det = detect_images(media.images, target, workers, bar.update)
+    for w in det.warnings:
+        ui.log.warning(w)
+    calib = run_calibration(det, target, opts)
+
+    cam = Camera(calib.K, calib.dist, *calib.image_size, calib.rms_px, _meta(calib, det, target))
+    cam.save(output)
+    if report:
+        write_report(report, calib, det)
+    _summary(calib, det, target, output, report)
+
+
+def _meta(c: Calibration, det: Detections, b: Board) -> dict:
+    meta = {
+        "pattern": b.pattern,
+        "board": b.label,
+        "square_m": float(b.square_m),
+        "views_found": len(det.views),
+        "views_used": len(c.views),
+        "views_rejected": len(c.rejected),
+        "view_names": ",".join(v.name for v in c.views),
+        "per_view_errors_px": [round(float(e), 4) for e in c.view_errors_px],
+        "std_intrinsics": [c.std_intrinsics[k] for k in ("fx", "fy", "cx", "cy")],
+        "std_distortion": [v for k, v in c.std_intrinsics.items() if k not in _K_NAMES],
+    }
+    if b.pattern == "charuco":
+        meta["marker_m"] = float(b.marker_m if b.marker_m is not None else 0.75 * b.square_m)
+        meta["dictionary"] = b.dictionary
+    return meta
+
+
+def _summary(c: Calibration, det: Detections, b: Board, output, report) -> None:
+    what = "frames" if det.views and det.views[0].frame is not None else "images"
+    s = c.std_intrinsics
+    ui.echo(f"board {b.label} {b.pattern}, square {b.square_m * 1000:g} mm")
+    line = f"views: {len(det.views)} found in {det.examined} {what}"
+    if det.not_found:
+        line += f" ({len(det.not_found)} without board)"
+    if det.unreadable:
+        line += f", {len(det.unreadable)} unreadable"
+    if det.duplicates:
+        line += f", {det.duplicates} near-duplicates skipped"
+    ui.echo(line)
+    ui.echo(f"used:  {len(c.views)} views, {len(c.rejected)} rejected")
+    for v, e in c.rejected:
+        ui.echo(f"  rejected {v.name}: RMS {e:.2f} px > limit {c.threshold_px:.2f} px")
+    ui.echo(f"RMS reprojection error: {c.rms_px:.3f} px")
+    ui.echo(f"fx {c.K[0, 0]:.2f} +- {s['fx']:.2f}   fy {c.K[1, 1]:.2f} +- {s['fy']:.2f} px")
+    ui.echo(f"cx {c.K[0, 2]:.2f} +- {s['cx']:.2f}   cy {c.K[1, 2]:.2f} +- {s['cy']:.2f} px")
+    dist = "  ".join(f"{n} {v:+.4f}" for n, v in zip(_dist_names(c), c.dist, strict=True))
+    ui.echo(f"distortion: {dist}")
+    ui.echo(f"wrote {output}" + (f" and {report}" if report else ""))
+    for w in c.warnings:
+        ui.log.warning(w)
+
+
+def _dist_names(c: Calibration) -> list[str]:
+    return [k for k in c.std_intrinsics if k not in _K_NAMES]
+
+
+def write_report(path, c: Calibration, det: Detections) -> None:
+    """Corner coverage over the image and per-view RMS, as one PNG (written atomically)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    w, h = c.image_size
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5), width_ratios=[1.1, 1])
+    cmap = plt.get_cmap("viridis")
+    for i, v in enumerate(c.views):
+        ax1.plot(
+            v.corners[:, 0], v.corners[:, 1], ".", ms=3, color=cmap(i / max(1, len(c.views) - 1))
+        )
+    for v, _ in c.rejected:
+        ax1.plot(v.corners[:, 0], v.corners[:, 1], "x", ms=3, color="red")
+    ax1.set(
+        xlim=(0, w),
+        ylim=(h, 0),
+        aspect="equal",
+        xlabel="x (px)",
+        ylabel="y (px)",
+        title=f"corner coverage ({len(c.views)} views; rejected x red)",
+    )
+    ax1.add_patch(plt.Rectangle((0, 0), w, h, fill=False, lw=1, color="k"))
+
+    names = [v.name for v in c.views] + [v.name for v, _ in c.rejected]
+    errs = np.r_[c.view_errors_px, [e for _, e in c.rejected]]
+    colors = ["tab:blue"] * len(c.views) + ["tab:red"] * len(c.rejected)
+    ax2.bar(range(len(errs)), errs, color=colors)
+    ax2.axhline(c.rms_px, color="k", lw=1, ls="--", label=f"overall RMS {c.rms_px:.3f} px")
+    if c.threshold_px is not None and c.threshold_px < 2 * errs.max():
+        ax2.axhline(c.threshold_px, color="tab:red", lw=1, ls=":", label="rejection limit")
+    ax2.set_xticks(range(len(errs)), names, rotation=90, fontsize=7)
+    ax2.set(ylabel="RMS reprojection error (px)", title="per-view error")
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)
