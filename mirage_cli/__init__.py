@@ -5,5 +5,6 @@ __version__ = "0.1.0"
 from .camera import Camera  # noqa: E402
 from .errors import MirageError  # noqa: E402
 from .pose import Pose  # noqa: E402
+from .solver import PoseEstimate, solve_pose  # noqa: E402
 
 __all__ = ["Camera", "MirageError", "Pose", "__version__"]
