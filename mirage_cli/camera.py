@@ -84,7 +84,7 @@ class Camera:
         if len(uv) == 0:
             return np.zeros((0, 2))
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        xy = cv2.undistortPointsIter(uv, self.K, self.dist, None, None, crit)
+        xy = cv2.undistortPoints(uv, self.K, self.dist, None, None, None, crit)
         return xy.reshape(-1, 2)
 
     def pixel_rays(self, pixels) -> np.ndarray:

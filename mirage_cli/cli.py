@@ -20,8 +20,12 @@ _debug = {"on": False}
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
 @click.version_option(__version__, "-V", "--version", prog_name="mirage")
-@click.option("--config", "config_path", type=click.Path(dir_okay=False),
-              help="YAML config (default: ./mirage.yaml if present).")
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(dir_okay=False),
+    help="YAML config (default: ./mirage.yaml if present).",
+)
 @click.option("-v", "--verbose", count=True, help="More detail (repeat for more).")
 @click.option("-q", "--quiet", is_flag=True, help="Only errors; no progress bars or summaries.")
 @click.option("--debug", is_flag=True, help="Show tracebacks of unexpected errors.")
@@ -42,7 +46,10 @@ def cli(ctx, config_path, verbose, quiet, debug):
 def _register() -> None:
     """Commands are added here as they start to work (one module per stage)."""
     from .calibrate_cli import calibrate
+    from .synth_cli import synth_cmd
+
     cli.add_command(calibrate)
+    cli.add_command(synth_cmd)
 
 
 _register()
@@ -63,8 +70,11 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(e.ctx.get_help() if e.ctx else str(e))
         sys.exit(2)
     except click.UsageError as e:
-        hint = f" (see 'mirage {e.ctx.info_name} --help')" if e.ctx and e.ctx.parent else \
-            " (see 'mirage --help')"
+        hint = (
+            f" (see 'mirage {e.ctx.info_name} --help')"
+            if e.ctx and e.ctx.parent
+            else " (see 'mirage --help')"
+        )
         click.echo(f"mirage: error: {e.format_message()}{hint}", err=True)
         sys.exit(2)
     except click.ClickException as e:
@@ -81,6 +91,9 @@ def main(argv: list[str] | None = None) -> None:
         if _debug["on"]:
             traceback.print_exc()
         msg = str(e).strip().splitlines()[-1] if str(e).strip() else ""
-        click.echo(f"mirage: error: unexpected {type(e).__name__}: {msg} "
-                   f"(rerun with --debug for the traceback)", err=True)
+        click.echo(
+            f"mirage: error: unexpected {type(e).__name__}: {msg} "
+            f"(rerun with --debug for the traceback)",
+            err=True,
+        )
         sys.exit(1)

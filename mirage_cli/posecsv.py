@@ -54,9 +54,11 @@ class PoseCSVWriter:
     def __init__(self, path, extra_columns: Sequence[str] = ()):
         self.path = check_writable(path)
         self.extra = list(extra_columns)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".partial",
-                                   dir=self.path.parent or ".")
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or "."
+        )
         self.tmp = Path(tmp)
+        os.chmod(tmp, 0o644)
         self._f = os.fdopen(fd, "w", newline="")
         self._w = csv.writer(self._f, lineterminator="\n")
         self._w.writerow(POSE_COLUMNS + self.extra)
@@ -112,15 +114,18 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
     try:
         df = pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True)
     except pd.errors.EmptyDataError:
-        raise InputError(f"pose file {p} is empty (expected a header row: "
-                         f"{','.join(POSE_COLUMNS[:10])})") from None
+        raise InputError(
+            f"pose file {p} is empty (expected a header row: {','.join(POSE_COLUMNS[:10])})"
+        ) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as e:
         raise InputError(f"pose file {p} is not a readable CSV: {str(e).strip()}") from None
     df.columns = [c.strip() for c in df.columns]
     if "frame" not in df.columns:
         if "image" not in df.columns:
-            raise InputError(f"pose file {p}: no 'frame' or 'image' column "
-                             f"(columns found: {', '.join(df.columns)})")
+            raise InputError(
+                f"pose file {p}: no 'frame' or 'image' column "
+                f"(columns found: {', '.join(df.columns)})"
+            )
         df = df.rename(columns={"image": "frame"})
     if require_pose:
         missing = [c for c in REQUIRED_INPUT if c not in df.columns]
@@ -142,8 +147,10 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
         if bad.any():
             i = int(np.flatnonzero(bad.to_numpy())[0])
             what = repr(df[col].iloc[i]) if raw.iloc[i] else "an empty cell"
-            raise InputError(f"pose file {p}: column '{col}' row {i + 2} (frame "
-                             f"{df['frame'].iloc[i]}) has {what}, expected a number")
+            raise InputError(
+                f"pose file {p}: column '{col}' row {i + 2} (frame "
+                f"{df['frame'].iloc[i]}) has {what}, expected a number"
+            )
         df[col] = num
     if require_pose:
         q = df.loc[ok, ["qw", "qx", "qy", "qz"]].to_numpy()
@@ -166,8 +173,9 @@ def row_pose(row) -> Pose | None:
     """Pose of one row of `read_pose_csv`'s frame (None when not ok)."""
     if row.get("status", "ok") != "ok":
         return None
-    return Pose.from_center_quat([row["x_m"], row["y_m"], row["z_m"]],
-                                 [row["qw"], row["qx"], row["qy"], row["qz"]])
+    return Pose.from_center_quat(
+        [row["x_m"], row["y_m"], row["z_m"]], [row["qw"], row["qx"], row["qy"], row["qz"]]
+    )
 
 
 def poses_by_frame(df: pd.DataFrame) -> dict[str, Pose]:

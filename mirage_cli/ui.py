@@ -44,10 +44,10 @@ def progress_enabled() -> bool:
 def progress(length: int | None, label: str):
     """A click progress bar when stdout is a terminal, else a no-op with the same API."""
     if progress_enabled():
-        with click.progressbar(length=length, label=label, show_pos=True,
-                               show_eta=True) as bar:
+        with click.progressbar(length=length, label=label, show_pos=True, show_eta=True) as bar:
             yield bar
     else:
+
         class _Null:
             def update(self, n, current_item=None):
                 pass

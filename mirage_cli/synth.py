@@ -1,0 +1,391 @@
+"""Synthetic test scenes with exact ground truth: a textured 3D landmark, a chessboard,
+keyframes circling the landmark, and an orbit video path with realistic deviations.
+
+Pure core: builds scenes, poses and images in memory; `synth_cli` writes the files.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .camera import Camera
+from .pose import Pose, look_at, matrix_from_rpy
+from .render import Cylinder, Rect, Renderer, Scene, random_texture, stable_rng
+
+LIGHT = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
+LANDMARK_TARGET = np.array([0.0, 0.0, 0.28])  # where the keyframe and orbit cameras look
+
+# The landmark: a base box, a smaller box on top and a cylinder beside it (metres, W frame).
+BOXES = {
+    "base": ((-0.30, 0.30), (-0.21, 0.21), (0.0, 0.34)),
+    "upper": ((-0.26, 0.0), (-0.18, 0.07), (0.34, 0.52)),
+}
+CYLINDER = {"center": (0.15, 0.06), "radius": 0.09, "z": (0.34, 0.62)}
+LANDMARK_BOUNDS = np.array([[-0.30, -0.21, 0.0], [0.30, 0.21, 0.62]])
+TEXEL_M = 0.001
+
+
+def default_camera() -> Camera:
+    """The sample data's camera: a cheap 640x480 webcam with moderate barrel distortion."""
+    K = np.array([[520.0, 0.0, 323.5], [0.0, 518.0, 237.2], [0.0, 0.0, 1.0]])
+    return Camera(K, np.array([-0.18, 0.06, 0.0006, -0.0004, 0.0]), 640, 480)
+
+
+# --------------------------------------------------------------------------------------
+# landmark scene
+# --------------------------------------------------------------------------------------
+def _shade(normal) -> float:
+    return float(0.55 + 0.45 * max(0.0, float(np.dot(normal, LIGHT))))
+
+
+def _box_faces(name, bounds, seed, markers, marker_normals):
+    """Four sides and the top of a box, each with its own texture and 3 corner markers."""
+    (x0, x1), (y0, y1), (z0, z1) = bounds
+    c = np.array([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2])
+    half = np.array([(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2])
+    up = np.array([0.0, 0.0, 1.0])
+    faces = []
+    for axis, sign, label in [
+        (0, 1, "+x"),
+        (0, -1, "-x"),
+        (1, 1, "+y"),
+        (1, -1, "-y"),
+        (2, 1, "top"),
+    ]:
+        n = np.zeros(3)
+        n[axis] = sign
+        if axis == 2:
+            eu, ev = np.array([1.0, 0, 0]), np.array([0, -1.0, 0])
+        else:
+            eu, ev = np.cross(-n, up), -up
+        wu = 2 * float(abs(eu) @ half)
+        wv = 2 * float(abs(ev) @ half)
+        origin = c + n * half[axis] - eu * wu / 2 - ev * wv / 2
+        fname = f"{name}{label}"
+        rng = stable_rng(seed, fname)
+        tw, th = int(round(wu / TEXEL_M)), int(round(wv / TEXEL_M))
+        tex = random_texture(rng, tw, th, density=1.3)
+        for _ in range(3):  # X-junction markers: exact, sub-pixel-detectable 3D points
+            s = 12
+            kx, ky = int(rng.integers(30, tw - 30)), int(rng.integers(30, th - 30))
+            tex[ky - s : ky, kx - s : kx] = 20
+            tex[ky : ky + s, kx : kx + s] = 20
+            tex[ky - s : ky, kx : kx + s] = 235
+            tex[ky : ky + s, kx - s : kx] = 235
+            markers.append(origin + kx * TEXEL_M * eu + ky * TEXEL_M * ev)
+            marker_normals.append(n)
+        faces.append(Rect(fname, origin, eu, ev, (wu, wv), TEXEL_M, tex, _shade(n)))
+    return faces
+
+
+class Disk(Rect):
+    """A horizontal disc (cylinder cap): a Rect clipped to a radius."""
+
+    def __init__(self, name, center_xy, radius, z, texel_m, texture, shade):
+        cx, cy = center_xy
+        super().__init__(
+            name,
+            (cx - radius, cy + radius, z),
+            (1.0, 0, 0),
+            (0, -1.0, 0),
+            (2 * radius, 2 * radius),
+            texel_m,
+            texture,
+            shade,
+        )
+        self.c2, self.r = np.array([cx, cy]), radius
+
+    def intersect(self, O, D):
+        t = super().intersect(O, D)
+        fin = np.isfinite(t)
+        P = O[:2] + t[fin, None] * D[fin, :2]
+        t[np.flatnonzero(fin)[np.linalg.norm(P - self.c2, axis=1) > self.r]] = np.inf
+        return t
+
+
+def landmark_scene(seed: int = 0) -> Scene:
+    """The landmark at the origin on a textured ground inside a textured round room."""
+    surfaces, markers, normals = [], [], []
+    for name, bounds in BOXES.items():
+        surfaces += _box_faces(name, bounds, seed, markers, normals)
+    cyl = CYLINDER
+    circ = 2 * np.pi * cyl["radius"]
+    h = cyl["z"][1] - cyl["z"][0]
+    tex = random_texture(
+        stable_rng(seed, "cylinder"), int(circ / TEXEL_M), int(h / TEXEL_M), density=1.3
+    )
+    surfaces.append(
+        Cylinder("cylinder", cyl["center"], cyl["radius"], *cyl["z"], TEXEL_M, tex, light=LIGHT)
+    )
+    d = int(2 * cyl["radius"] / TEXEL_M)
+    surfaces.append(
+        Disk(
+            "cylinder-top",
+            cyl["center"],
+            cyl["radius"],
+            cyl["z"][1],
+            TEXEL_M,
+            random_texture(stable_rng(seed, "cap"), d, d),
+            _shade(np.array([0, 0, 1])),
+        )
+    )
+    g = 12.0  # ground: 12 m square, 5 mm texels
+    ground_tex = random_texture(stable_rng(seed, "ground"), 2400, 2400, density=0.8, scale=3)
+    surfaces.append(
+        Rect(
+            "ground",
+            (-g / 2, g / 2, 0.0),
+            (1.0, 0, 0),
+            (0, -1.0, 0),
+            (g, g),
+            g / 2400,
+            ground_tex,
+            0.85,
+        )
+    )
+    wall_r, wall_h, wall_texel = 5.5, 3.0, 0.008
+    wall_tex = random_texture(
+        stable_rng(seed, "wall"),
+        int(2 * np.pi * wall_r / wall_texel),
+        int(wall_h / wall_texel),
+        density=0.7,
+        scale=4,
+    )
+    surfaces.append(
+        Cylinder("wall", (0.0, 0.0), wall_r, 0.0, wall_h, wall_texel, wall_tex, inside=True)
+    )
+    for s in surfaces[:-2]:  # a bounding box lets the renderer skip rays that miss the landmark
+        s.bounds = LANDMARK_BOUNDS
+    return Scene(surfaces, markers=np.array(markers), marker_normals=np.array(normals))
+
+
+def landmark_surface_samples(step: float = 0.02) -> np.ndarray:
+    """Points spread over the landmark's outer surface (for visibility and coverage)."""
+    pts = []
+    for (x0, x1), (y0, y1), (z0, z1) in BOXES.values():
+        xs, ys, zs = (np.arange(a, b + 1e-9, step) for a, b in ((x0, x1), (y0, y1), (z0, z1)))
+        for X, Y, Z in [(xs, ys, [z1]), ([x0, x1], ys, zs), (xs, [y0, y1], zs)]:
+            g = np.stack(np.meshgrid(X, Y, Z, indexing="ij"), -1).reshape(-1, 3)
+            pts.append(g)
+    (cx, cy), r, (z0, z1) = CYLINDER["center"], CYLINDER["radius"], CYLINDER["z"]
+    th, zz = np.meshgrid(np.arange(0, 2 * np.pi, step / r), np.arange(z0, z1 + 1e-9, step))
+    pts.append(
+        np.column_stack([cx + r * np.cos(th.ravel()), cy + r * np.sin(th.ravel()), zz.ravel()])
+    )
+    return np.concatenate(pts)
+
+
+def _box_distance(P, bounds) -> np.ndarray:
+    lo = np.array([b[0] for b in bounds])
+    hi = np.array([b[1] for b in bounds])
+    c, h = (lo + hi) / 2, (hi - lo) / 2
+    q = np.abs(P - c) - h
+    outside = np.linalg.norm(np.maximum(q, 0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0)
+    return np.abs(outside + inside)
+
+
+def landmark_surface_distance(points) -> np.ndarray:
+    """Unsigned distance (m) from each point to the landmark's true surface."""
+    P = np.asarray(points, float).reshape(-1, 3)
+    d = [_box_distance(P, b) for b in BOXES.values()]
+    (cx, cy), r, (z0, z1) = CYLINDER["center"], CYLINDER["radius"], CYLINDER["z"]
+    radial = np.hypot(P[:, 0] - cx, P[:, 1] - cy) - r
+    axial = np.maximum(z0 - P[:, 2], P[:, 2] - z1)
+    q = np.column_stack([radial, axial])
+    d.append(np.abs(np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)))
+    return np.min(d, axis=0)
+
+
+def landmark_visibility(camera: Camera, pose: Pose, samples: np.ndarray) -> float:
+    """Share of landmark surface samples in front of the camera that project into the image."""
+    Xc = pose.transform(samples)
+    front = Xc[:, 2] > 0.05
+    if not front.any():
+        return 0.0
+    uv = camera.project(samples[front], pose)
+    inside = (
+        (uv[:, 0] >= 0)
+        & (uv[:, 0] <= camera.width - 1)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] <= camera.height - 1)
+    )
+    return float(inside.sum()) / len(samples)
+
+
+# --------------------------------------------------------------------------------------
+# chessboard scene
+# --------------------------------------------------------------------------------------
+def board_scene(cols: int, rows: int, square: float, seed: int = 0) -> Scene:
+    """A printed chessboard (cols x rows inner corners) in plane Z=0 of the board frame.
+
+    Inner corner (i, j) sits at (i*square, j*square, 0), OpenCV's object-point order.
+    The camera looks from Z < 0; a textured desk lies behind the board at Z = 0.3 m.
+    """
+    px = 25  # texels per square
+    margin = 1  # white margin, in squares
+    nx, ny = cols + 1 + 2 * margin, rows + 1 + 2 * margin
+    tex = np.full((ny * px, nx * px, 3), 245, np.uint8)
+    for a in range(cols + 1):
+        for b in range(rows + 1):
+            if (a + b) % 2 == 0:
+                y0, x0 = (b + margin) * px, (a + margin) * px
+                tex[y0 : y0 + px, x0 : x0 + px] = 25
+    texel = square / px
+    origin = (-(1 + margin) * square, -(1 + margin) * square, 0.0)
+    board = Rect(
+        "board", origin, (1.0, 0, 0), (0, 1.0, 0), (nx * square, ny * square), texel, tex, 1.0
+    )
+    desk_tex = random_texture(stable_rng(seed, "desk"), 1500, 1500, density=0.4, scale=3)
+    desk = Rect(
+        "desk", (-1.5, -1.5, 0.3), (1.0, 0, 0), (0, 1.0, 0), (3.0, 3.0), 0.002, desk_tex, 0.8
+    )
+    return Scene([board, desk])
+
+
+def board_corners(cols: int, rows: int, square: float) -> np.ndarray:
+    j, i = np.mgrid[0:rows, 0:cols]
+    return np.column_stack([i.ravel() * square, j.ravel() * square, np.zeros(i.size)])
+
+
+def calibration_poses(
+    camera: Camera, cols: int, rows: int, square: float, n: int, rng: np.random.Generator
+) -> list[Pose]:
+    """Views as a person takes them: tilted up to ~50 deg, rolled, the board in every part
+    of the image (corners too), fully visible."""
+    corners = board_corners(cols, rows, square)
+    centre = corners.mean(axis=0)
+    span = np.ptp(corners, axis=0).max()
+    poses: list[Pose] = []
+    tries = 0
+    while len(poses) < n:
+        tries += 1
+        if tries > 200 * n:
+            raise RuntimeError("could not place the board in view; is the board too large?")
+        tilt = np.radians(rng.uniform(5, 50))
+        az = rng.uniform(0, 2 * np.pi)
+        dist = rng.uniform(1.1, 2.6) * span * camera.fx / camera.width * 1.3
+        direction = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), -np.cos(tilt)])
+        C = centre + dist * direction
+        base = look_at(C, centre, up=(0.0, -1.0, 0.0))
+        roll = np.radians(rng.uniform(-25, 25))
+        Rroll = matrix_from_rpy(0, 0, roll)  # about the optical axis (camera z)
+        # move the board centre to a random image position (corners of the image too)
+        u = rng.uniform(0.12, 0.88) * camera.width
+        v = rng.uniform(0.12, 0.88) * camera.height
+        r = camera.pixel_rays([[u, v]])[0]
+        Q = _rotation_between(np.array([0.0, 0, 1]), r)
+        pose = Pose(Q @ Rroll @ base.R, Q @ Rroll @ base.t)
+        Xc = pose.transform(corners)
+        if np.any(Xc[:, 2] <= 0.05):
+            continue
+        uv = camera.project(corners, pose)
+        m = 12
+        if (
+            uv[:, 0].min() < m
+            or uv[:, 1].min() < m
+            or uv[:, 0].max() > camera.width - 1 - m
+            or uv[:, 1].max() > camera.height - 1 - m
+        ):
+            continue
+        poses.append(pose)
+    return poses
+
+
+def _rotation_between(a, b) -> np.ndarray:
+    """Smallest rotation taking unit vector a to unit vector b."""
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    s = np.linalg.norm(v)
+    if s < 1e-12:
+        return np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]) / s
+    ang = np.arctan2(s, c)
+    return np.eye(3) + np.sin(ang) * k + (1 - np.cos(ang)) * (k @ k)
+
+
+# --------------------------------------------------------------------------------------
+# keyframes and the orbit path
+# --------------------------------------------------------------------------------------
+def keyframe_poses(
+    step_deg: float = 10.0, radius: float = 1.4, heights=(0.6,)
+) -> list[tuple[str, Pose]]:
+    """Views every `step_deg` of azimuth at each height, looking at the landmark."""
+    out = []
+    for hi, h in enumerate(heights):
+        for k, az in enumerate(np.arange(0.0, 360.0 - 1e-9, step_deg)):
+            a = np.radians(az)
+            C = np.array([radius * np.cos(a), radius * np.sin(a), h])
+            name = f"kf_{k:03d}" if len(heights) == 1 else f"kf_h{hi}_{k:03d}"
+            out.append((name, look_at(C, LANDMARK_TARGET)))
+    return out
+
+
+@dataclass
+class OrbitPath:
+    """A circle around the landmark with wobble in radius, height and heading, changes of
+    speed, and a stretch where the camera turns away so the landmark leaves the view."""
+
+    duration_s: float = 18.0
+    radius_m: float = 1.6
+    height_m: float = 0.55
+    turns: float = 1.12
+    start_deg: float = -20.0
+    look_away_s: tuple[float, float] = (8.4, 10.6)
+    look_away_deg: float = 100.0
+
+    def pose(self, t: float) -> Pose:
+        T = self.duration_s
+        az = (
+            np.radians(self.start_deg)
+            + 2 * np.pi * self.turns * t / T
+            + 0.25 * np.sin(2 * np.pi * t / 7.0)
+        )
+        r = self.radius_m + 0.18 * np.sin(2 * np.pi * t / 6.3) + 0.05 * np.sin(2 * np.pi * t / 1.7)
+        h = self.height_m + 0.12 * np.sin(2 * np.pi * t / 5.1 + 1.0)
+        C = np.array([r * np.cos(az), r * np.sin(az), h])
+        base = look_at(C, LANDMARK_TARGET)
+        yaw = np.radians(4.0 * np.sin(2 * np.pi * t / 2.3) + self.look_away_deg * self._away(t))
+        pitch = np.radians(2.0 * np.sin(2 * np.pi * t / 3.1))
+        roll = np.radians(2.0 * np.sin(2 * np.pi * t / 2.7))
+        Rz = matrix_from_rpy(0, 0, yaw)
+        Rcam = matrix_from_rpy(pitch, 0, roll)  # about camera x (tilt) and z (roll)
+        R_wc = Rz @ base.R_wc @ Rcam
+        return Pose.from_center(R_wc, C)
+
+    def _away(self, t: float) -> float:
+        """0 -> 1 -> 0 with smooth ramps of 0.45 s at both ends of the look-away stretch."""
+        a, b = self.look_away_s
+        ramp = 0.45
+
+        def smooth(x):
+            x = np.clip(x, 0, 1)
+            return x * x * (3 - 2 * x)
+
+        return float(min(smooth((t - a) / ramp), smooth((b - t) / ramp)))
+
+    def desired_path(self) -> dict:
+        return {
+            "type": "circle",
+            "center_m": [0.0, 0.0],
+            "radius_m": self.radius_m,
+            "height_m": self.height_m,
+            "direction": "ccw",
+            "look_at_m": [float(v) for v in LANDMARK_TARGET],
+        }
+
+
+def render_images(renderer: Renderer, poses, noise: float, seed: int, name: str):
+    """Yield one noisy rendering per pose; noise is seeded per image for reproducibility."""
+    for i, pose in enumerate(poses):
+        yield renderer.render(pose, noise, stable_rng(seed, f"{name}-noise-{i}"))
+
+
+def encode_jpeg(img: np.ndarray, quality: int = 95) -> bytes:
+    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return buf.tobytes()

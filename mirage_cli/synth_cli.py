@@ -1,0 +1,301 @@
+"""`mirage synth`: write a synthetic data set with exact ground truth."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import click
+import cv2
+import numpy as np
+import yaml
+
+from . import synth, ui
+from .camera import Camera
+from .errors import InputError, OutputError
+from .fileio import atomic_path, atomic_write, ensure_dir
+from .posecsv import PoseCSVWriter
+from .render import Renderer, stable_rng
+
+PARTS = ("calibration", "keyframes", "orbit")
+
+_worker: dict = {}
+
+
+def _render_job(args):
+    """Render one frame in a worker (the Renderer is inherited through fork)."""
+    i, poses = args
+    r: Renderer = _worker["renderer"]
+    rng = stable_rng(_worker["seed"], f"{_worker['name']}-noise-{i}")
+    return r.render(poses[0], _worker["noise"], rng, blur_poses=poses if len(poses) > 1 else None)
+
+
+def _render_all(
+    renderer: Renderer, pose_lists, noise: float, seed: int, name: str, jobs: int, label: str
+):
+    """Yield rendered frames in order, on `jobs` processes when the platform can fork."""
+    _worker.update(renderer=renderer, noise=noise, seed=seed, name=name)
+    items = list(enumerate(pose_lists))
+    with ui.progress(len(items), label) as bar:
+        if jobs > 1 and "fork" in mp.get_all_start_methods() and len(items) > 2:
+            with mp.get_context("fork").Pool(jobs) as pool:
+                for img in pool.imap(_render_job, items, chunksize=2):
+                    bar.update(1)
+                    yield img
+        else:
+            for it in items:
+                bar.update(1)
+                yield _render_job(it)
+
+
+def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
+    with atomic_write(path, "wb") as f:
+        f.write(synth.encode_jpeg(img, quality))
+
+
+def _parse_board(value: str) -> tuple[int, int]:
+    try:
+        cols, rows = (int(v) for v in value.lower().split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not COLSxROWS, e.g. 9x6") from None
+    if cols < 2 or rows < 2:
+        raise click.BadParameter("the board needs at least 2x2 inner corners")
+    return cols, rows
+
+
+@click.command("synth")
+@click.argument("outdir", type=click.Path(file_okay=False))
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option(
+    "--camera",
+    "camera_path",
+    type=click.Path(dir_okay=False),
+    help="Camera YAML to render with (default: a 640x480 webcam with distortion).",
+)
+@click.option("--width", type=click.IntRange(min=16), help="Image width (scales the camera).")
+@click.option("--height", type=click.IntRange(min=16), help="Image height.")
+@click.option(
+    "--only",
+    default=",".join(PARTS),
+    show_default=True,
+    help="Comma-separated parts to write: calibration, keyframes, orbit.",
+)
+@click.option("--board", default="9x6", show_default=True, help="Inner corners COLSxROWS.")
+@click.option(
+    "--square",
+    type=click.FloatRange(min=0, min_open=True),
+    default=0.025,
+    show_default=True,
+    help="Chessboard square size (m).",
+)
+@click.option("--calib-views", type=click.IntRange(min=1), default=20, show_default=True)
+@click.option(
+    "--keyframe-step",
+    type=click.FloatRange(min=1, max=180),
+    default=10.0,
+    show_default=True,
+    help="Keyframe spacing in azimuth (deg).",
+)
+@click.option(
+    "--heights",
+    default="0.6",
+    show_default=True,
+    help="Keyframe camera heights (m), comma-separated.",
+)
+@click.option(
+    "--radius",
+    type=click.FloatRange(min=0.8),
+    default=1.4,
+    show_default=True,
+    help="Keyframe circle radius (m).",
+)
+@click.option(
+    "--duration",
+    type=click.FloatRange(min=0.1),
+    default=18.0,
+    show_default=True,
+    help="Orbit video length (s).",
+)
+@click.option("--fps", type=click.FloatRange(min=1), default=30.0, show_default=True)
+@click.option(
+    "--noise",
+    type=click.FloatRange(min=0),
+    default=1.5,
+    show_default=True,
+    help="Sensor noise sigma (grey levels).",
+)
+@click.option(
+    "--motion-blur",
+    type=click.IntRange(min=1),
+    default=1,
+    show_default=True,
+    help="Sub-frame renders averaged over half a frame interval (1 = off).",
+)
+@click.option("--jpeg-quality", type=click.IntRange(50, 100), default=95, show_default=True)
+@click.option(
+    "--jobs", type=click.IntRange(min=1), default=2, show_default=True, help="Render processes."
+)
+def synth_cmd(
+    outdir,
+    seed,
+    camera_path,
+    width,
+    height,
+    only,
+    board,
+    square,
+    calib_views,
+    keyframe_step,
+    heights,
+    radius,
+    duration,
+    fps,
+    noise,
+    motion_blur,
+    jpeg_quality,
+    jobs,
+):
+    """Render a synthetic data set with exact ground truth into OUTDIR.
+
+    Writes camera_truth.yaml, calibration/ (chessboard views), keyframes/ (views
+    circling the landmark + poses.csv), orbit.mp4 + orbit_truth.csv and
+    desired_path.yaml. The same --seed gives byte-identical images.
+
+    Example: mirage synth sample_data --seed 0
+    """
+    parts = [p.strip() for p in only.split(",") if p.strip()]
+    bad = [p for p in parts if p not in PARTS]
+    if bad or not parts:
+        raise click.BadParameter(
+            f"unknown part(s) {', '.join(bad) or '(none)'}; choose from {', '.join(PARTS)}",
+            param_hint="'--only'",
+        )
+    cols, rows = _parse_board(board)
+    try:
+        hs = [float(h) for h in heights.split(",")]
+    except ValueError:
+        raise click.BadParameter(
+            f"{heights!r} is not a list of numbers", param_hint="'--heights'"
+        ) from None
+    cam = Camera.load(camera_path) if camera_path else synth.default_camera()
+    if width or height:
+        w = width or round(cam.width * height / cam.height)
+        h = height or round(cam.height * width / cam.width)
+        cam = cam.scaled(w, h)
+    out = ensure_dir(outdir)
+    t0 = time.perf_counter()
+    cam.save(out / "camera_truth.yaml")
+
+    if "calibration" in parts:
+        _calibration(
+            out / "calibration",
+            cam,
+            cols,
+            rows,
+            square,
+            calib_views,
+            seed,
+            noise,
+            jpeg_quality,
+            jobs,
+        )
+    if "keyframes" in parts or "orbit" in parts:
+        scene = synth.landmark_scene(seed)
+        renderer = Renderer(scene, cam)
+        if "keyframes" in parts:
+            _keyframes(
+                out / "keyframes",
+                renderer,
+                keyframe_step,
+                radius,
+                hs,
+                seed,
+                noise,
+                jpeg_quality,
+                jobs,
+            )
+        if "orbit" in parts:
+            _orbit(out, renderer, duration, fps, seed, noise, motion_blur, jobs)
+    ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
+
+
+def _calibration(folder, cam, cols, rows, square, n, seed, noise, quality, jobs):
+    folder = ensure_dir(folder)
+    renderer = Renderer(synth.board_scene(cols, rows, square, seed), cam)
+    try:
+        poses = synth.calibration_poses(cam, cols, rows, square, n, stable_rng(seed, "calib"))
+    except RuntimeError as e:
+        raise InputError(f"{e} (board {cols}x{rows}, square {square} m)") from None
+    names = [f"calib_{i:03d}.jpg" for i in range(n)]
+    for name, img in zip(
+        names,
+        _render_all(renderer, [[p] for p in poses], noise, seed, "calib", jobs, "calibration"),
+        strict=True,
+    ):
+        _write_jpeg(folder / name, img, quality)
+    with PoseCSVWriter(folder / "poses.csv") as w:  # camera poses in the board frame
+        for name, p in zip(names, poses, strict=True):
+            w.write(name, None, "ok", p)
+    ui.echo(
+        f"synth: {n} chessboard views ({cols}x{rows} inner corners, {square * 1000:g} mm "
+        f"squares) in {folder}"
+    )
+
+
+def _keyframes(folder, renderer, step, radius, heights, seed, noise, quality, jobs):
+    folder = ensure_dir(folder)
+    views = synth.keyframe_poses(step, radius, heights)
+    imgs = _render_all(
+        renderer, [[p] for _, p in views], noise, seed, "keyframes", jobs, "keyframes"
+    )
+    for (name, _), img in zip(views, imgs, strict=True):
+        _write_jpeg(folder / f"{name}.jpg", img, quality)
+    with PoseCSVWriter(folder / "poses.csv") as w:
+        for name, p in views:
+            w.write(f"{name}.jpg", None, "ok", p)
+    ui.echo(f"synth: {len(views)} keyframes every {step:g} deg in {folder}")
+
+
+def _orbit(out: Path, renderer, duration, fps, seed, noise, blur, jobs):
+    cam = renderer.camera
+    path = synth.OrbitPath(duration_s=duration, look_away_s=_look_away(duration))
+    n = int(round(duration * fps))
+    times = np.arange(n) / fps
+    poses = [path.pose(t) for t in times]
+    exposure = 0.5 / fps
+    pose_lists = [
+        [path.pose(t + exposure * (k / max(blur - 1, 1) - 0.5)) for k in range(blur)]
+        if blur > 1
+        else [p]
+        for t, p in zip(times, poses, strict=True)
+    ]
+    samples = synth.landmark_surface_samples()
+    vis = [synth.landmark_visibility(cam, p, samples) for p in poses]
+    with atomic_path(out / "orbit.mp4") as tmp:
+        writer = cv2.VideoWriter(
+            str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (cam.width, cam.height)
+        )
+        if not writer.isOpened():
+            raise OutputError("this OpenCV build cannot write mp4 (mp4v) video")
+        for img in _render_all(renderer, pose_lists, noise, seed, "orbit", jobs, "orbit video"):
+            writer.write(img)
+        writer.release()
+    with PoseCSVWriter(out / "orbit_truth.csv", ["landmark_visible"]) as w:
+        for i, (t, p, v) in enumerate(zip(times, poses, vis, strict=True)):
+            w.write(i, t, "ok", p, landmark_visible=round(v, 4))
+    with atomic_write(out / "desired_path.yaml") as f:
+        f.write("# Desired path of the orbit (mirage synth); see the brief, section 3.\n")
+        yaml.safe_dump(path.desired_path(), f, sort_keys=False, default_flow_style=None)
+    away = sum(v == 0 for v in vis)
+    ui.echo(
+        f"synth: orbit.mp4 {n} frames at {fps:g} fps, {cam.width}x{cam.height}; landmark "
+        f"out of view in {away} frames"
+    )
+
+
+def _look_away(duration: float) -> tuple[float, float]:
+    """The look-away stretch: 2.2 s starting at 47% of the video (scaled for short videos)."""
+    length = min(2.2, 0.25 * duration)
+    start = 0.47 * duration
+    return start, start + length

@@ -1,0 +1,57 @@
+"""The CLI contract: version, help, config layering and one-line errors."""
+
+from conftest import assert_one_line_error
+
+from mirage_cli import __version__
+from mirage_cli.config import load_config
+
+
+def test_version(mirage):
+    p = mirage("--version")
+    assert p.returncode == 0 and __version__ in p.stdout
+
+
+def test_unknown_command_is_one_line(mirage):
+    assert_one_line_error(mirage("frobnicate"), 2, "no such command")
+
+
+def test_bad_config_yaml(mirage, tmp_path):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("synth: [1, 2\n")
+    assert_one_line_error(mirage("--config", cfg, "synth", tmp_path / "o"), 2, "not valid YAML")
+
+
+def test_missing_config(mirage, tmp_path):
+    assert_one_line_error(mirage("--config", tmp_path / "nope.yaml", "synth", "x"), 2, "not found")
+
+
+def test_config_layering(tmp_path):
+    cfg, src = load_config(cwd=tmp_path)
+    assert src is None and cfg["synth"]["noise"] == 1.5
+    (tmp_path / "mirage.yaml").write_text("synth:\n  noise: 0.5\n  jpeg-quality: 90\n")
+    cfg, src = load_config(cwd=tmp_path)
+    assert src.name == "mirage.yaml"
+    assert cfg["synth"]["noise"] == 0.5 and cfg["synth"]["jpeg_quality"] == 90
+    assert cfg["synth"]["seed"] == 0  # untouched defaults survive
+
+
+def test_project_config_used_and_flags_win(mirage, tmp_path):
+    (tmp_path / "mirage.yaml").write_text("synth:\n  calib_views: -3\n")
+    # the config's (bad) value is used ...
+    assert_one_line_error(
+        mirage("synth", "out", "--only", "calibration", cwd=tmp_path), 2, "calib-views"
+    )
+    # ... and a flag overrides it
+    p = mirage(
+        "synth",
+        "out",
+        "--only",
+        "calibration",
+        "--calib-views",
+        "1",
+        "--width",
+        "160",
+        cwd=tmp_path,
+    )
+    assert p.returncode == 0, p.stderr
+    assert len(list((tmp_path / "out" / "calibration").glob("*.jpg"))) == 1

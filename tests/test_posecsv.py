@@ -1,0 +1,97 @@
+import numpy as np
+import pandas as pd
+import pytest
+
+from mirage_cli.errors import InputError
+from mirage_cli.pose import Pose
+from mirage_cli.posecsv import POSE_COLUMNS, PoseCSVWriter, read_pose_csv, row_pose
+
+
+def some_poses(n=5):
+    rng = np.random.default_rng(3)
+    return [Pose.from_center_rpy(rng.uniform(-2, 2, 3), *rng.uniform(-60, 60, 3)) for _ in range(n)]
+
+
+def test_round_trip(tmp_path):
+    poses = some_poses()
+    path = tmp_path / "p.csv"
+    with PoseCSVWriter(path, ["inliers"]) as w:
+        for i, p in enumerate(poses):
+            w.write(i, i / 30, "ok", p, inliers=10 + i)
+        w.write(5, 5 / 30, "lost", None)
+    raw = pd.read_csv(path)
+    assert list(raw.columns) == POSE_COLUMNS + ["inliers"]
+    df = read_pose_csv(path)
+    assert len(df) == 6 and df["status"].tolist() == ["ok"] * 5 + ["lost"]
+    for (_, row), p in zip(df.iloc[:5].iterrows(), poses, strict=True):
+        q = row_pose(row)
+        assert q.distance_to(p) < 2e-6 and q.angle_to(p) < 1e-5
+        assert np.allclose([row.roll_deg, row.pitch_deg, row.yaw_deg], p.rpy_deg, atol=1e-3)
+    assert np.isnan(df.loc[5, "x_m"]) and row_pose(df.iloc[5]) is None
+
+
+def test_rows_are_flushed_before_close(tmp_path):
+    path = tmp_path / "p.csv"
+    w = PoseCSVWriter(path)
+    w.write(0, 0.0, "ok", some_poses(1)[0])
+    # the partial file already holds the row; the final path appears on close
+    assert len(w.tmp.read_text().splitlines()) == 2
+    assert not path.exists()
+    w.close()
+    assert len(path.read_text().splitlines()) == 2 and not w.tmp.exists()
+
+
+def test_interrupt_keeps_rows(tmp_path):
+    path = tmp_path / "p.csv"
+    with pytest.raises(KeyboardInterrupt), PoseCSVWriter(path) as w:
+        w.write(0, 0.0, "ok", some_poses(1)[0])
+        raise KeyboardInterrupt
+    assert len(path.read_text().splitlines()) == 2
+
+
+def test_error_keeps_previous_good_file(tmp_path):
+    path = tmp_path / "p.csv"
+    path.write_text("previous")
+    with pytest.raises(RuntimeError), PoseCSVWriter(path) as w:
+        w.write(0, 0.0, "ok", some_poses(1)[0])
+        raise RuntimeError("boom")
+    assert path.read_text() == "previous"
+
+
+def test_image_column_and_minimal_input(tmp_path):
+    p = tmp_path / "in.csv"
+    p.write_text("image,x_m,y_m,z_m,qw,qx,qy,qz\na.jpg,1,2,3,1,0,0,0\nb.jpg,1,2,3,2,0,0,0\n")
+    df = read_pose_csv(p)
+    assert df["frame"].tolist() == ["a.jpg", "b.jpg"]
+    assert np.isclose(df.loc[1, "qw"], 1.0)  # normalised
+    assert (df["status"] == "ok").all()
+
+
+@pytest.mark.parametrize(
+    "text, msg",
+    [
+        ("", "empty"),
+        ("frame,x_m,y_m,z_m,qw,qx,qy\n0,1,2,3,1,0,0\n", "missing column(s) qz"),
+        (
+            "frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,2,3,1,0,0,0\n1,1,abc,3,1,0,0,0\n",
+            "column 'y_m' row 3",
+        ),
+        ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,,3,1,0,0,0\n", "column 'y_m' row 2"),
+        ("x_m,y_m,z_m,qw,qx,qy,qz\n1,2,3,1,0,0,0\n", "no 'frame' or 'image'"),
+        ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n", "no rows"),
+        ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,2,3,0,0,0,0\n", "zero quaternion"),
+    ],
+)
+def test_clear_errors(tmp_path, text, msg):
+    p = tmp_path / "bad.csv"
+    p.write_text(text)
+    with pytest.raises(InputError) as e:
+        read_pose_csv(p)
+    assert msg in str(e.value)
+
+
+def test_lost_rows_may_be_empty(tmp_path):
+    p = tmp_path / "in.csv"
+    p.write_text("frame,status,x_m,y_m,z_m,qw,qx,qy,qz\n0,ok,1,2,3,1,0,0,0\n1,lost,,,,,,,\n")
+    df = read_pose_csv(p)
+    assert df["status"].tolist() == ["ok", "lost"]
