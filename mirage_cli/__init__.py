@@ -7,4 +7,4 @@ from .errors import MirageError  # noqa: E402
 from .pose import Pose  # noqa: E402
 from .solver import PoseEstimate, solve_pose  # noqa: E402
 
-__all__ = ["Camera", "MirageError", "Pose", "__version__"]
+__all__ = ["Camera", "MirageError", "Pose", "PoseEstimate", "__version__", "solve_pose"]
