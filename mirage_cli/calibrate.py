@@ -124,21 +124,55 @@ def find_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray
 
 def _find_chessboard(gray, board: Board):
     size = (board.cols, board.rows)
-    method = "sb"
-    ok, corners = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE)
-    if not ok:
-        method = "classic"
-        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        ok, corners = cv2.findChessboardCorners(gray, size, flags=flags)
-    if not ok:
-        method = "sb"
-        flags = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE
-        ok, corners = cv2.findChessboardCornersSB(gray, size, flags=flags)
-    if not ok or corners is None:
-        return None
-    corners = corners.reshape(board.rows, board.cols, 2).astype(np.float32)
-    corners = refine_corners(gray, corners).reshape(-1, 2)
-    return corners, np.arange(len(corners)), method
+    norm = cv2.CALIB_CB_NORMALIZE_IMAGE
+    attempts = (
+        ("sb", lambda: cv2.findChessboardCornersSB(gray, size, flags=norm)),
+        (
+            "classic",
+            lambda: cv2.findChessboardCorners(
+                gray, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | norm
+            ),
+        ),
+        (
+            "sb",
+            lambda: cv2.findChessboardCornersSB(gray, size, flags=norm | cv2.CALIB_CB_EXHAUSTIVE),
+        ),
+    )
+    for method, detect in attempts:
+        ok, corners = detect()
+        if not ok or corners is None:
+            continue
+        grid = corners.reshape(board.rows, board.cols, 2).astype(np.float32)
+        if plausible_grid(gray, grid):
+            corners = refine_corners(gray, grid).reshape(-1, 2)
+            return corners, np.arange(len(corners)), method
+    return None
+
+
+def plausible_grid(gray: np.ndarray, grid: np.ndarray) -> bool:
+    """Reject detections that are not the whole declared board.
+
+    With a wrong --board the detectors (SB in particular) return grids that skip rows,
+    include points off the board or are a part of a larger board; calibrating on them
+    gives a confident wrong camera. A real board view is smooth (small second
+    differences, even under strong distortion), its cells alternate dark/bright, and
+    it does not continue past its sides.
+    """
+    for axis in (0, 1):
+        g = np.moveaxis(grid, axis, 0)
+        bend = np.linalg.norm(g[2:] - 2 * g[1:-1] + g[:-2], axis=-1)
+        step = np.linalg.norm(g[2:] - g[:-2], axis=-1) / 2
+        if g.shape[0] > 2 and np.max(bend / np.maximum(step, 1e-6)) > 0.3:
+            return False
+    centres = (grid[:-1, :-1] + grid[1:, :-1] + grid[:-1, 1:] + grid[1:, 1:]) / 4
+    m = centres.reshape(-1, 1, 2).astype(np.float32)
+    blurred = cv2.GaussianBlur(gray, (5, 5), 0).astype(np.float32)
+    vals = cv2.remap(blurred, m[..., 0], m[..., 1], cv2.INTER_LINEAR).ravel()
+    parity = (np.indices(centres.shape[:2]).sum(axis=0) % 2).ravel().astype(bool)
+    agree = np.mean((vals > np.median(vals)) == parity)
+    if max(agree, 1 - agree) < 0.9:
+        return False
+    return not extends_beyond(gray, grid)
 
 
 def refine_corners(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
@@ -155,6 +189,51 @@ def refine_corners(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
     pts = np.ascontiguousarray(grid.reshape(-1, 1, 2), np.float32)
     cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), SUBPIX_CRITERIA)
     return pts.reshape(grid.shape)
+
+
+def extends_beyond(gray: np.ndarray, grid: np.ndarray, limit: float = 0.75) -> bool:
+    """True when the chessboard continues past a side of the detected (rows, cols) grid.
+
+    findChessboardCornersSB happily returns a 7x5 part of a 9x6 board. One step past
+    each side of a complete board lies the board's outer edge (one dark square of four
+    quadrants: half the X-corner contrast); past a partial board lies another X-corner.
+    The saddle contrast there, relative to the inner corners', tells them apart.
+    """
+    g = cv2.GaussianBlur(gray, (3, 3), 0).astype(np.float32)
+    h, w = g.shape
+    du = np.gradient(grid, axis=1)  # one step along a row
+    dv = np.gradient(grid, axis=0)  # one step down a column
+
+    def saddle(p, u, v):  # |(q++ + q--) - (q+- + q-+)| / 2 at points p (N, 2)
+        offs = np.array([[1, 1], [-1, -1], [1, -1], [-1, 1]], np.float32) * 0.3
+        q = p[:, None] + offs[None, :, :1] * u[:, None] + offs[None, :, 1:] * v[:, None]
+        m = q.reshape(-1, 1, 2).astype(np.float32)
+        vals = cv2.remap(
+            g,
+            m[..., 0],
+            m[..., 1],
+            cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=np.nan,
+        ).reshape(-1, 4)
+        inside = np.all((q >= 1) & (q <= [w - 2, h - 2]), axis=(1, 2))
+        sc = np.abs(vals[:, 0] + vals[:, 1] - vals[:, 2] - vals[:, 3]) / 2
+        return np.where(inside, sc, np.nan)
+
+    ref = np.nanmedian(saddle(grid.reshape(-1, 2), du.reshape(-1, 2), dv.reshape(-1, 2)))
+    if not ref > 0:
+        return False
+    sides = [
+        (2 * grid[0] - grid[1], du[0], dv[0]),
+        (2 * grid[-1] - grid[-2], du[-1], dv[-1]),
+        (2 * grid[:, 0] - grid[:, 1], du[:, 0], dv[:, 0]),
+        (2 * grid[:, -1] - grid[:, -2], du[:, -1], dv[:, -1]),
+    ]
+    for p, u, v in sides:
+        sc = saddle(p, u, v)
+        if np.isfinite(sc).sum() >= 2 and np.nanmedian(sc) / ref > limit:
+            return True
+    return False
 
 
 def _find_charuco(gray, board: Board):
