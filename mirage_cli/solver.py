@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+from scipy.linalg import lapack
 
 from .camera import Camera
 from .pose import Pose
@@ -197,6 +198,13 @@ def _robust_weights(r2: np.ndarray, robust: str, huber_px: float, reject_px: flo
     return wt
 
 
+def _spd_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray | None:
+    """Cholesky solve of the 6x6 normal equations (LAPACK dposv: ~5x less overhead than
+    np.linalg.solve); None when H is not positive definite (degenerate geometry)."""
+    _, x, info = lapack.dposv(H, g)
+    return x if info == 0 else None
+
+
 def _try_step(prob: _Problem, R, t, delta, alpha: float, wt):
     """(weighted cost, step, state) at exp(alpha delta) T, or None if points go behind."""
     d = delta * alpha if alpha != 1.0 else delta
@@ -229,7 +237,7 @@ def _refine(
     e, e2, r2, iz, zmin = prob.residuals(R, t)
     if e is None:
         return "points behind the camera at the start pose"
-    inv_depth = float(np.mean(iz))
+    inv_depth = float(iz.sum()) / prob.n
     dof = 2 * prob.n - 6
     converged = False
     iterations = 0
@@ -240,9 +248,8 @@ def _refine(
         wt = _robust_weights(r2, robust if prob.n >= _MIN_ROBUST else "none", huber_px, reject_px)
         H, g = prob.normal_equations(iz, wt, e)
         cost0 = float(np.dot(wt, r2))
-        try:
-            gn = np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
+        gn = _spd_solve(H, g)
+        if gn is None:
             return "singular system (degenerate point configuration)"
         slope = float(gn @ g)  # cost(a) = cost0 - 2 a slope + O(a^2) along the GN step
         if not math.isfinite(slope):
@@ -265,9 +272,8 @@ def _refine(
             best = None
             for k in range(12):  # Levenberg-Marquardt fallback: damp until the cost drops
                 lam = 1e-4 * 10.0**k
-                try:
-                    dl = np.linalg.solve(H + np.diag(lam * np.diag(H)), g)
-                except np.linalg.LinAlgError:
+                dl = _spd_solve(H + np.diag(lam * np.diag(H)), g)
+                if dl is None:
                     return "singular system (degenerate point configuration)"
                 trial = _try_step(prob, R, t, dl, 1.0, wt)
                 if trial is not None and trial[0] <= cost0 * (1.0 + 1e-12) + 1e-30:
@@ -300,9 +306,8 @@ def _refine(
     if not converged:
         # one more linearisation at the final pose so the covariance belongs to it
         H, g = prob.normal_equations(iz, wt, e)
-        try:
-            d = np.linalg.solve(H, g)
-        except np.linalg.LinAlgError:
+        d = _spd_solve(H, g)
+        if d is None:
             return "singular system (degenerate point configuration)"
         if not np.linalg.norm(d[:3]) + np.linalg.norm(d[3:]) * inv_depth <= 1e-6:
             return f"did not converge in {max_iterations} iterations"
