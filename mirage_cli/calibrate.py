@@ -112,17 +112,22 @@ class Detections:
     warnings: list[str] = field(default_factory=list)
 
 
-def find_corners(gray: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray, str] | None:
-    """Corners (N,2), their ids and the detector used, or None when no board is seen."""
+def find_corners(
+    gray: np.ndarray, board: Board, subpix_window: int | None = None
+) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Corners (N,2), their ids and the detector used, or None when no board is seen.
+
+    `subpix_window`: fixed cornerSubPix half-window in px (default: from corner spacing).
+    """
     try:
         if board.pattern == "charuco":
-            return _find_charuco(gray, board)
-        return _find_chessboard(gray, board)
+            return _find_charuco(gray, board, subpix_window)
+        return _find_chessboard(gray, board, subpix_window)
     except cv2.error as e:
         raise InputError(f"corner detection failed: {_cv_msg(e)}") from None
 
 
-def _find_chessboard(gray, board: Board):
+def _find_chessboard(gray, board: Board, subpix_window=None):
     size = (board.cols, board.rows)
     norm = cv2.CALIB_CB_NORMALIZE_IMAGE
     attempts = (
@@ -144,7 +149,7 @@ def _find_chessboard(gray, board: Board):
             continue
         grid = corners.reshape(board.rows, board.cols, 2).astype(np.float32)
         if plausible_grid(gray, grid):
-            corners = refine_corners(gray, grid).reshape(-1, 2)
+            corners = refine_corners(gray, grid, subpix_window).reshape(-1, 2)
             return corners, np.arange(len(corners)), method
     return None
 
@@ -175,7 +180,7 @@ def plausible_grid(gray: np.ndarray, grid: np.ndarray) -> bool:
     return not extends_beyond(gray, grid)
 
 
-def refine_corners(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
+def refine_corners(gray: np.ndarray, grid: np.ndarray, half: int | None = None) -> np.ndarray:
     """cornerSubPix with a window that stays inside the squares around each corner.
 
     `grid` is (rows, cols, 2); the half-window is a quarter of the smallest spacing
@@ -185,7 +190,7 @@ def refine_corners(gray: np.ndarray, grid: np.ndarray) -> np.ndarray:
         np.linalg.norm(np.diff(grid, axis=1), axis=2).min(),
         np.linalg.norm(np.diff(grid, axis=0), axis=2).min(),
     )
-    half = int(np.clip(spacing // 4, 2, 8))
+    half = half or int(np.clip(spacing // 4, 2, 8))
     pts = np.ascontiguousarray(grid.reshape(-1, 1, 2), np.float32)
     cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), SUBPIX_CRITERIA)
     return pts.reshape(grid.shape)
@@ -236,7 +241,7 @@ def extends_beyond(gray: np.ndarray, grid: np.ndarray, limit: float = 0.75) -> b
     return False
 
 
-def _find_charuco(gray, board: Board):
+def _find_charuco(gray, board: Board, subpix_window=None):
     detector = cv2.aruco.CharucoDetector(board.charuco())
     corners, ids, _, _ = detector.detectBoard(gray)
     if corners is None or ids is None or len(ids) < MIN_CHARUCO_CORNERS:
@@ -246,7 +251,7 @@ def _find_charuco(gray, board: Board):
     # refine as for a chessboard; spacing from the nearest neighbour of each corner
     d = np.linalg.norm(corners[:, None] - corners[None], axis=2)
     np.fill_diagonal(d, np.inf)
-    half = int(np.clip(np.median(d.min(axis=1)) // 4, 2, 8))
+    half = subpix_window or int(np.clip(np.median(d.min(axis=1)) // 4, 2, 8))
     pts = np.ascontiguousarray(corners.reshape(-1, 1, 2))
     cv2.cornerSubPix(gray, pts, (half, half), (-1, -1), SUBPIX_CRITERIA)
     return pts.reshape(-1, 2), ids, "charuco"
@@ -257,6 +262,7 @@ def detect_images(
     board: Board,
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
+    subpix_window: int | None = None,
 ) -> Detections:
     """Find the board in each image, in parallel (OpenCV releases the GIL)."""
     workers = default_workers() if workers is None else max(1, workers)
@@ -266,7 +272,7 @@ def detect_images(
             gray = read_image(path, gray=True)
         except InputError as e:
             return path, None, None, str(e)
-        return path, gray.shape[::-1], find_corners(gray, board), None
+        return path, gray.shape[::-1], find_corners(gray, board, subpix_window), None
 
     views, not_found, unreadable, warnings = [], [], [], []
     sizes: dict[tuple[int, int], str] = {}
@@ -302,6 +308,7 @@ def detect_video(
     min_motion_px: float = 8.0,
     workers: int | None = None,
     progress: Callable[[int], None] | None = None,
+    subpix_window: int | None = None,
 ) -> Detections:
     """Find the board in every `every`-th frame; drop views where it has barely moved.
 
@@ -311,7 +318,7 @@ def detect_video(
 
     def one(item):
         index, t, frame = item
-        return index, t, find_corners(frame, board)
+        return index, t, find_corners(frame, board, subpix_window)
 
     found: list[View] = []
     not_found: list[str] = []

@@ -125,6 +125,13 @@ def _positive(ctx, param, value):
     help="Write a PNG with corner coverage and per-view errors.",
 )
 @click.option(
+    "--subpix-window",
+    type=click.IntRange(min=1),
+    default=None,
+    help="Fixed cornerSubPix half-window in px [default: 1/4 of the corner spacing, "
+    "max 8]; 11 reproduces OpenCV's calibration sample.",
+)
+@click.option(
     "--workers",
     type=click.IntRange(min=1),
     default=None,
@@ -148,6 +155,7 @@ def calibrate(
     max_view_error,
     reject_factor,
     report,
+    subpix_window,
     workers,
 ):
     """Calibrate the camera from chessboard or ChArUco images, a folder, a glob or a video.
@@ -172,10 +180,12 @@ def calibrate(
     if media.is_video:
         n = video_info(media.video).frames
         with ui.progress((n + every - 1) // every if n else None, "detecting") as bar:
-            det = detect_video(media.video, target, every, min_motion, workers, bar.update)
+            det = detect_video(
+                media.video, target, every, min_motion, workers, bar.update, subpix_window
+            )
     else:
         with ui.progress(len(media.images), "detecting") as bar:
-            det = detect_images(media.images, target, workers, bar.update)
+            det = detect_images(media.images, target, workers, bar.update, subpix_window)
     for w in det.warnings:
         ui.log.warning(w)
     calib = run_calibration(det, target, opts)
