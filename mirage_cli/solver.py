@@ -331,7 +331,7 @@ def _validate(points_3d, points_2d):
     ev = np.linalg.eigvalsh(c.T @ c)  # squared singular values, ascending
     if ev[2] <= 1e-24 or ev[1] <= 1e-18 * ev[2]:
         return "degenerate 3D points: all collinear or coincident"
-    return X, u
+    return X, u, bool(ev[0] <= 1e-6 * ev[2])  # planar: thickness below 0.1% of the extent
 
 
 def _normalise(camera: Camera, u: np.ndarray):
@@ -487,6 +487,7 @@ def solve_pose(
     ransac_iterations: int = 500,
     ransac_confidence: float = 0.999,
     tol: float = 1e-6,
+    max_rmse_px: float | None = None,
 ) -> PoseEstimate:
     """Pose T_CW of a camera from n >= 3 world points and their pixels.
 
@@ -500,7 +501,67 @@ def solve_pose(
     outliers beyond max(ransac_threshold_px, 5 robust sigmas)) or "none".
     pixel_sigma: known pixel noise for the covariance; None estimates it from the residuals
     (sum w r^2 / (2n - 6)), falling back to `default_pixel_sigma` when n = 3 (no redundancy).
+    max_rmse_px: optional gate; a solution whose inlier reprojection RMSE (per-point 2D
+    error, px) exceeds it is reported as a failure instead of a doubtful pose.
+    Never raises for bad numeric input: failures come back with success=False and a reason.
     """
+    try:
+        est = _solve(
+            points_3d,
+            points_2d,
+            camera,
+            reference_pose,
+            method,
+            ransac,
+            ransac_threshold_px,
+            seed,
+            robust,
+            max_iterations,
+            huber_px,
+            pixel_sigma,
+            default_pixel_sigma,
+            ransac_iterations,
+            ransac_confidence,
+            tol,
+        )
+    except (np.linalg.LinAlgError, cv2.error, FloatingPointError) as e:  # belt and braces
+        return _fail(f"numerical failure: {type(e).__name__}", _count(points_3d), str(method))
+    if est.success and max_rmse_px is not None and not est.rmse_px <= max_rmse_px:
+        return _fail(
+            f"reprojection RMSE {est.rmse_px:.2f} px above max_rmse_px {max_rmse_px:g}",
+            len(est.inliers),
+            est.method,
+            est.iterations,
+        )
+    return est
+
+
+def _count(points) -> int:
+    try:
+        return int(np.size(points) // 3) if np.ndim(points) else 0
+    except (ValueError, TypeError):
+        return 0
+
+
+def _solve(
+    points_3d,
+    points_2d,
+    camera: Camera,
+    reference_pose: Pose | None = None,
+    method: str = "mirage-s",
+    ransac: bool = False,
+    ransac_threshold_px: float = 4.0,
+    seed: int = 0,
+    robust: str = "huber",
+    max_iterations: int = 50,
+    huber_px: float = 3.0,
+    pixel_sigma: float | None = None,
+    default_pixel_sigma: float = 1.0,
+    ransac_iterations: int = 500,
+    ransac_confidence: float = 0.999,
+    tol: float = 1e-6,
+) -> PoseEstimate:
+    """The body of `solve_pose` (see there)."""
     method = str(method).lower()
     if method not in METHODS:
         return _fail(f"unknown method '{method}' (choose from {', '.join(METHODS)})", 0, method)
@@ -508,9 +569,8 @@ def solve_pose(
         return _fail(f"unknown robust loss '{robust}' (huber or none)", 0, method)
     v = _validate(points_3d, points_2d)
     if isinstance(v, str):
-        n0 = int(np.size(points_3d) // 3) if np.ndim(points_3d) else 0
-        return _fail(v, max(n0, 0), method)
-    X, u = v
+        return _fail(v, _count(points_3d), method)
+    X, u, planar = v
     n = len(X)
     if reference_pose is not None and not (
         np.all(np.isfinite(reference_pose.R)) and np.all(np.isfinite(reference_pose.t))
@@ -588,6 +648,74 @@ def solve_pose(
             break  # the reference start succeeded: its basin is the one we want
     if best is None:
         return _fail(reason, n, method)
+    if planar and reference_pose is not None and best.rmse_px > 0.0:
+        best = _planar_alternative(
+            best,
+            X,
+            u,
+            xy,
+            mask,
+            camera,
+            robust,
+            huber_px,
+            reject_px,
+            max_iterations,
+            tol,
+            pixel_sigma,
+            default_pixel_sigma,
+        )
+    return best
+
+
+def _planar_alternative(
+    best,
+    X,
+    u,
+    xy,
+    mask,
+    camera,
+    robust,
+    huber_px,
+    reject_px,
+    max_iterations,
+    tol,
+    pixel_sigma,
+    default_sigma,
+) -> PoseEstimate:
+    """Planar targets have two nearby minima (the flip ambiguity); with few points or a small
+    target the reference can sit in the wrong basin.  Refine both IPPE solutions too and take
+    one only if it explains the pixels clearly better (cost under half), so that with
+    comparable costs the reference still decides."""
+    m = best.inliers if best.inliers.sum() >= 4 else mask
+    if m.sum() < 4:
+        return best
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            np.ascontiguousarray(X[m]),
+            np.ascontiguousarray(u[m]),
+            camera.K,
+            camera.dist,
+            flags=cv2.SOLVEPNP_IPPE,
+        )
+    except cv2.error:
+        return best
+    prob = _Problem(X[m], xy[m], camera.fx, camera.fy)
+    for rv, tv in zip(rvecs, tvecs, strict=False):
+        if not (np.all(np.isfinite(rv)) and np.all(np.isfinite(tv))):
+            continue
+        start = Pose.from_rvec_tvec(np.ravel(rv), np.ravel(tv))
+        if start.angle_to(best.pose) < 0.5:
+            continue
+        res = _refine(prob, start, max_iterations, robust, huber_px, reject_px, tol)
+        if isinstance(res, str):
+            continue
+        alt = _from_refine(None, prob, res, m, len(X), pixel_sigma, default_sigma)
+        if (
+            alt.success
+            and alt.pose.angle_to(best.pose) > 0.5
+            and (alt.rmse_px**2 < 0.5 * best.rmse_px**2)
+        ):
+            best = alt
     return best
 
 

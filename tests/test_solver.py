@@ -1,0 +1,334 @@
+"""Mirage-S against ground truth and the Cramer-Rao bound (issue 4 acceptance targets).
+
+Every statistical test uses a fixed seed and enough trials for stable ratios; the bound is
+the Fisher information J^T J / sigma^2 at the true pose, RMS over the same scenes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from mirage_cli import PoseEstimate, solve_pose
+from mirage_cli.camera import Camera
+from mirage_cli.pose import Pose, look_at, rodrigues, rotvec
+
+CAM = Camera.from_params(1280, 720, 1000.0)
+
+
+def _unit(rng):
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def scene(rng, n, planar=False, offset_deg=15.0, cam=CAM):
+    """Points near the origin, a camera 1.5-2.5 m away looking at them, and a reference
+    pose: the camera moved around the landmark by offset_deg (rotation = offset)."""
+    while True:
+        d = rng.uniform(1.5, 2.5)
+        c = _unit(rng)
+        c[2] = abs(c[2]) * 0.7
+        c = c / np.linalg.norm(c) * d
+        if planar:
+            tilt = rodrigues(_unit(rng) * math.radians(rng.uniform(0, 30)))
+            nrm = tilt @ (c / d)  # facing the camera, tilted up to 30 deg
+            e1 = np.cross(nrm, _unit(rng))
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(nrm, e1)
+            uv = rng.uniform(-0.25, 0.25, (n, 2))
+            X = uv[:, :1] * e1 + uv[:, 1:] * e2
+        else:
+            X = rng.uniform(-0.25, 0.25, (n, 3))
+        truth = look_at(c, rng.normal(scale=0.05, size=3))
+        if np.all(truth.transform(X)[:, 2] > 0.3):
+            u = cam.project(X, truth)
+            if np.all((u > 0) & (u < [cam.width, cam.height])):
+                break
+    Q = rodrigues(_unit(rng) * math.radians(offset_deg))
+    ref = Pose.from_center(Q @ truth.R_wc, Q @ truth.center)
+    return X, truth, ref
+
+
+def errs(est: Pose, truth: Pose):
+    """(rotation error rad, centre error m) without arccos precision loss."""
+    return (
+        float(np.linalg.norm(rotvec(est.R @ truth.R.T))),
+        float(np.linalg.norm(est.center - truth.center)),
+    )
+
+
+def crb_traces(X, truth, sigma, cam=CAM):
+    Xc = truth.transform(X)
+    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1 / Xc[:, 2]
+    z = np.zeros_like(x)
+    J = np.vstack(
+        [
+            cam.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z, -x * iz]),
+            cam.fy * np.column_stack([-(1 + y * y), x * y, x, z, iz, -y * iz]),
+        ]
+    )
+    C = np.linalg.inv(J.T @ J) * sigma**2
+    return np.trace(C[:3, :3]), np.trace(C[3:, 3:])
+
+
+def crb_ratios(n, planar, trials, seed, methods=("mirage-s",), sigma=1.0, offset=15.0):
+    """RMS error / RMS bound (rotation, centre) per method over the same scenes."""
+    rng = np.random.default_rng(seed)
+    e = {m: ([], []) for m in methods}
+    br, bt = [], []
+    for _ in range(trials):
+        X, truth, ref = scene(rng, n, planar, offset)
+        u = CAM.project(X, truth) + rng.normal(scale=sigma, size=(n, 2))
+        a, b = crb_traces(X, truth, sigma)
+        br.append(a)
+        bt.append(b)
+        for m in methods:
+            est = solve_pose(X, u, CAM, ref, method=m)
+            r, t = errs(est.pose, truth) if est.success else (math.pi, 10.0)
+            e[m][0].append(r * r)
+            e[m][1].append(t * t)
+    B = math.sqrt(np.mean(br)), math.sqrt(np.mean(bt))
+    return {
+        m: (math.sqrt(np.mean(v[0])) / B[0], math.sqrt(np.mean(v[1])) / B[1]) for m, v in e.items()
+    }
+
+
+# --- noise-free recovery ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [4, 5, 6, 10, 50, 200])
+@pytest.mark.parametrize("planar", [False, True])
+def test_noise_free_from_30_degrees(n, planar):
+    rng = np.random.default_rng(100 + n + planar)
+    its = []
+    for _ in range(10):
+        X, truth, ref = scene(rng, n, planar, 30.0)
+        est = solve_pose(X, CAM.project(X, truth), CAM, ref)
+        assert est.success, est.reason
+        r, t = errs(est.pose, truth)
+        assert r < 1e-6 and t / np.linalg.norm(truth.center) < 1e-6
+        assert est.rmse_px < 1e-6 and est.inliers.all()
+        its.append(est.iterations)
+    assert np.median(its) <= (12 if planar else 7), its  # weak geometry takes longer
+
+
+def test_noise_free_three_points_from_10_degrees():
+    """n = 3 has up to four exact solutions; Mirage-S takes the one nearest the reference."""
+    rng = np.random.default_rng(3)
+    for _ in range(30):
+        X, truth, ref = scene(rng, 3, False, 10.0)
+        est = solve_pose(X, CAM.project(X, truth), CAM, ref)
+        assert est.success, est.reason
+        r, t = errs(est.pose, truth)
+        assert r < 1e-6 and t / np.linalg.norm(truth.center) < 1e-6
+
+
+def test_lens_distortion_is_handled():
+    cam = Camera.from_params(1280, 720, 900.0, dist=[-0.25, 0.08, 0.001, -0.0005, 0.0])
+    rng = np.random.default_rng(4)
+    X, truth, ref = scene(rng, 20, False, 20.0, cam=cam)
+    est = solve_pose(X, cam.project(X, truth), cam, ref)
+    assert est.success
+    r, t = errs(est.pose, truth)
+    assert r < 1e-7 and t < 1e-7
+
+
+def test_without_reference_pose():
+    rng = np.random.default_rng(5)
+    X, truth, _ = scene(rng, 30, False)
+    u = CAM.project(X, truth) + rng.normal(scale=0.5, size=(30, 2))
+    est = solve_pose(X, u, CAM)
+    assert est.success
+    r, t = errs(est.pose, truth)
+    assert math.degrees(r) < 1.0 and t < 0.05
+
+
+# --- accuracy against the Cramer-Rao bound ----------------------------------------------
+
+
+def test_n4_reaches_bound_where_epnp_sqpnp_fail():
+    ratios = crb_ratios(4, False, 400, seed=11, methods=("mirage-s", "epnp", "sqpnp"))
+    mr, mt = ratios["mirage-s"]
+    assert mr < 1.2 and mt < 1.2, ratios
+    for m in ("epnp", "sqpnp"):
+        assert ratios[m][0] > 2 * mr and ratios[m][1] > 2 * mt, ratios
+
+
+@pytest.mark.parametrize("n", [10, 50])
+def test_nonplanar_reaches_bound(n):
+    ratios = crb_ratios(n, False, 1000, seed=12 + n)["mirage-s"]
+    assert max(ratios) < 1.05, ratios
+
+
+@pytest.mark.parametrize("n", [10, 50])
+def test_planar_reaches_bound(n):
+    ratios = crb_ratios(n, True, 600, seed=20 + n)["mirage-s"]
+    assert max(ratios) < 1.1, ratios
+
+
+def test_outliers_with_ransac_match_clean_inliers():
+    """30% gross outliers at n = 100 (RANSAC) vs the same 70 inliers alone: within 1.1x."""
+    rng = np.random.default_rng(31)
+    a, b = [], []
+    for _ in range(150):
+        X, truth, ref = scene(rng, 100)
+        u = CAM.project(X, truth) + rng.normal(size=(100, 2))
+        out = rng.choice(100, 30, replace=False)
+        u[out] = rng.uniform([0, 0], [CAM.width, CAM.height], (30, 2))
+        inl = np.ones(100, bool)
+        inl[out] = False
+        est = solve_pose(X, u, CAM, ref, ransac=True, seed=7)
+        clean = solve_pose(X[inl], u[inl], CAM, ref)
+        assert est.success and clean.success
+        assert np.sum(est.inliers & ~inl) <= 1 and np.sum(est.inliers & inl) >= 68
+        a.append(errs(est.pose, truth))
+        b.append(errs(clean.pose, truth))
+    ra, rb = np.sqrt(np.mean(np.square(a), axis=0)), np.sqrt(np.mean(np.square(b), axis=0))
+    assert np.all(ra / rb < 1.1), (ra, rb)
+
+
+def test_ransac_is_reproducible():
+    rng = np.random.default_rng(32)
+    X, truth, ref = scene(rng, 60)
+    u = CAM.project(X, truth) + rng.normal(size=(60, 2))
+    u[:20] = rng.uniform([0, 0], [CAM.width, CAM.height], (20, 2))
+    a = solve_pose(X, u, CAM, ref, ransac=True, seed=3)
+    b = solve_pose(X, u, CAM, ref, ransac=True, seed=3)
+    assert a.success and np.array_equal(a.inliers, b.inliers)
+    assert np.allclose(a.pose.matrix, b.pose.matrix)
+
+
+# --- covariance ---------------------------------------------------------------------------
+
+
+def test_covariance_is_honest():
+    """Empirical RMS error over 400 trials matches the reported 1-sigma within 20%."""
+    rng = np.random.default_rng(41)
+    er, ep, sr, sp = [], [], [], []
+    for _ in range(400):
+        X, truth, ref = scene(rng, 12)
+        u = CAM.project(X, truth) + rng.normal(scale=1.5, size=(12, 2))
+        est = solve_pose(X, u, CAM, ref)
+        assert est.success
+        r, t = errs(est.pose, truth)
+        er.append(r)
+        ep.append(t)
+        sr.append(math.radians(est.sigma_rot_deg))
+        sp.append(est.sigma_pos_m)
+        assert est.covariance.shape == (6, 6)
+        assert np.allclose(est.covariance, est.covariance.T)
+    rot = math.sqrt(np.mean(np.square(er)) / np.mean(np.square(sr)))
+    pos = math.sqrt(np.mean(np.square(ep)) / np.mean(np.square(sp)))
+    assert 0.8 < rot < 1.2 and 0.8 < pos < 1.2, (rot, pos)
+
+
+def test_covariance_three_points_uses_prior_sigma():
+    rng = np.random.default_rng(42)
+    X, truth, ref = scene(rng, 3, False, 5.0)
+    est = solve_pose(X, CAM.project(X, truth), CAM, ref, default_pixel_sigma=2.0)
+    assert est.success and est.sigma_px == 2.0 and est.sigma_pos_m > 0
+
+
+# --- OpenCV methods through the same interface ------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["epnp", "sqpnp", "iterative", "ap3p"])
+def test_opencv_methods_same_estimate(method):
+    rng = np.random.default_rng(50)
+    X, truth, ref = scene(rng, 40)
+    u = CAM.project(X, truth) + rng.normal(scale=0.3, size=(40, 2))
+    est = solve_pose(X, u, CAM, ref, method=method)
+    assert isinstance(est, PoseEstimate) and est.success, est.reason
+    assert est.method == method
+    r, t = errs(est.pose, truth)
+    tol = 4.0 if method == "ap3p" else 1.0  # AP3P uses 3 of the 40 points: a minimal solver
+    assert math.degrees(r) < tol and t < 0.05 * tol
+    assert np.isfinite(est.sigma_pos_m) and np.isfinite(est.sigma_rot_deg)
+
+
+def test_opencv_methods_fail_soundly_on_few_points():
+    rng = np.random.default_rng(51)
+    X, truth, _ = scene(rng, 3)
+    u = CAM.project(X, truth)
+    for m in ("epnp", "iterative", "ap3p"):
+        est = solve_pose(X, u, CAM, None, method=m)
+        assert not est.success and est.pose is None and est.reason
+
+
+# --- speed --------------------------------------------------------------------------------
+
+
+def test_speed_against_sqpnp():
+    rng = np.random.default_rng(60)
+    X, truth, ref = scene(rng, 100)
+    u = CAM.project(X, truth) + rng.normal(size=(100, 2))
+
+    def median_us(**kw):
+        ts = []
+        for _ in range(200):
+            t0 = time.perf_counter()
+            solve_pose(X, u, CAM, ref, **kw)
+            ts.append(time.perf_counter() - t0)
+        return np.median(ts)
+
+    ratio = median_us() / median_us(method="sqpnp")
+    assert ratio < 5.0, ratio
+
+
+# --- sound failure ------------------------------------------------------------------------
+
+
+def _assert_fails(est, word):
+    assert isinstance(est, PoseEstimate)
+    assert not est.success and est.pose is None
+    assert word in est.reason, est.reason
+
+
+@pytest.mark.parametrize("method", ["mirage-s", "epnp", "sqpnp", "iterative", "ap3p"])
+def test_degenerate_inputs(method):
+    rng = np.random.default_rng(70)
+    X, truth, ref = scene(rng, 8)
+    u = CAM.project(X, truth)
+    _assert_fails(solve_pose(X[:2], u[:2], CAM, ref, method=method), "at least 3")
+    _assert_fails(solve_pose(X[:0], u[:0], CAM, ref, method=method), "at least 3")
+    Xn = X.copy()
+    Xn[2, 1] = np.nan
+    _assert_fails(solve_pose(Xn, u, CAM, ref, method=method), "non-finite")
+    un = u.copy()
+    un[0, 0] = np.inf
+    _assert_fails(solve_pose(X, un, CAM, ref, method=method), "non-finite")
+    line = np.outer(np.linspace(-0.3, 0.3, 8), [1.0, 0.5, 0.2])
+    _assert_fails(solve_pose(line, CAM.project(line, truth), CAM, ref, method=method), "collinear")
+    same = np.zeros((6, 3))
+    _assert_fails(solve_pose(same, u[:6], CAM, ref, method=method), "collinear")
+    _assert_fails(solve_pose(X, u[:5], CAM, ref, method=method), "counts differ")
+    _assert_fails(solve_pose(X, u, CAM, ref, method="nope"), "unknown method")
+    _assert_fails(solve_pose("abc", u, CAM, ref, method=method), "numeric")
+
+
+def test_points_behind_camera():
+    """Pixels that only a camera with the points behind it explains: no pose, no exception."""
+    rng = np.random.default_rng(71)
+    X, truth, ref = scene(rng, 10)
+    flipped = Pose(truth.R, -truth.t)  # the landmark now sits behind the camera
+    Xc = flipped.transform(X)
+    assert np.all(Xc[:, 2] < 0)
+    u = Xc[:, :2] / Xc[:, 2:] * CAM.fx + [CAM.cx, CAM.cy]
+    _assert_fails(solve_pose(X, u, CAM, flipped), "behind")
+    est = solve_pose(X, u, CAM, ref)
+    if est.success:  # no pose explains these pixels: any pose found must say so loudly
+        assert np.all(est.pose.transform(X)[:, 2] > 0) and est.rmse_px > 5.0
+    _assert_fails(solve_pose(X, u, CAM, ref, max_rmse_px=3.0), "RMSE")
+
+
+def test_garbage_does_not_give_a_pose_silently():
+    """Random pixels: either no pose, or one with a large reported RMSE (never silent)."""
+    rng = np.random.default_rng(72)
+    for _ in range(20):
+        X, truth, ref = scene(rng, 12)
+        u = rng.uniform([0, 0], [CAM.width, CAM.height], (12, 2))
+        est = solve_pose(X, u, CAM, ref)
+        assert est.success is False or est.rmse_px > 5.0 or (~est.inliers).sum() > 0
