@@ -50,6 +50,10 @@ def _register() -> None:
 
     cli.add_command(calibrate)
     cli.add_command(synth_cmd)
+    from .build_model_cli import build_model_cmd, inspect_cmd
+
+    cli.add_command(build_model_cmd)
+    cli.add_command(inspect_cmd)
 
 
 _register()

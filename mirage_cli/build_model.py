@@ -1,0 +1,687 @@
+"""Build the 360-degree landmark model from views with known poses (brief, section 4.2).
+
+Pure core, no terminal I/O (warnings go to the `mirage` logger, the CLI prints them):
+
+1. views: each image (or video frame) with its pose, from a pose CSV or a fiducial board
+   in view (ChArUco / ArUco grid), which then defines W;
+2. keyframes: one view per `spacing_deg` of azimuth (per elevation band);
+3. features in every keyframe; matches between keyframes that see the landmark from
+   neighbouring directions, filtered by the epipolar constraint of the known poses;
+4. tracks (connected components of matches), triangulated from all their views (linear
+   DLT, then Gauss-Newton on the reprojection error, vectorised over all tracks), kept
+   when they reproject within `max_reproj_px` in every view, are in front of every camera,
+   have a large enough triangulation angle and lie in the volume of interest.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .camera import Camera
+from .errors import InputError
+from .features import DetectorSettings, detect, make_detector, ratio_match
+from .fileio import require_file
+from .media import iter_video, read_image, resolve_inputs, video_info
+from .model import Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
+from .pose import Pose, matrix_from_rpy
+from .posecsv import poses_by_frame, read_pose_csv
+
+log = logging.getLogger("mirage")
+
+
+# --------------------------------------------------------------------------------------
+# settings and the volume of interest
+# --------------------------------------------------------------------------------------
+@dataclass
+class ROI:
+    """Volume of interest in W: a vertical cylinder about the z axis, or a box."""
+
+    kind: str = "none"  # none | cylinder | box | auto
+    values: tuple = ()
+
+    @classmethod
+    def parse(cls, text: str | None) -> ROI:
+        """'auto', 'none', 'R,ZMIN,ZMAX' (cylinder) or 'X0,X1,Y0,Y1,Z0,Z1' (box)."""
+        if text is None or str(text).strip().lower() in ("", "auto"):
+            return cls("auto")
+        t = str(text).strip().lower()
+        if t == "none":
+            return cls("none")
+        try:
+            v = tuple(float(x) for x in t.replace("cyl:", "").replace("box:", "").split(","))
+        except ValueError:
+            v = ()
+        if len(v) == 3 and v[0] > 0 and v[1] < v[2]:
+            return cls("cylinder", v)
+        if len(v) == 6 and v[0] < v[1] and v[2] < v[3] and v[4] < v[5]:
+            return cls("box", v)
+        raise InputError(
+            f"--roi {text!r}: expected 'auto', 'none', 'R,ZMIN,ZMAX' (cylinder about the "
+            "origin) or 'XMIN,XMAX,YMIN,YMAX,ZMIN,ZMAX' (box), in metres"
+        )
+
+    def resolved(self, poses: list[Pose]) -> ROI:
+        """'auto': a cylinder inside the ring of cameras (85% of the nearest camera's
+        horizontal distance), from 0.2 m below the ground to 0.5 m above the highest
+        camera. Keeps the landmark and the ground near it, drops the far background."""
+        if self.kind != "auto":
+            return self
+        c = np.array([p.center for p in poses])
+        r = 0.85 * float(np.min(np.hypot(c[:, 0], c[:, 1])))
+        return ROI("cylinder", (max(r, 0.05), -0.2, float(c[:, 2].max()) + 0.5))
+
+    def contains(self, X: np.ndarray) -> np.ndarray:
+        if self.kind == "cylinder":
+            r, z0, z1 = self.values
+            return (np.hypot(X[:, 0], X[:, 1]) <= r) & (X[:, 2] >= z0) & (X[:, 2] <= z1)
+        if self.kind == "box":
+            lo, hi = np.array(self.values[0::2]), np.array(self.values[1::2])
+            return np.all((X >= lo) & (X <= hi), axis=1)
+        return np.ones(len(X), bool)
+
+    def describe(self) -> str:
+        if self.kind == "cylinder":
+            return "cylinder r={:.2f} m, z {:.2f}..{:.2f} m".format(*self.values)
+        if self.kind == "box":
+            return "box x {:.2f}..{:.2f}, y {:.2f}..{:.2f}, z {:.2f}..{:.2f} m".format(*self.values)
+        return self.kind
+
+
+@dataclass
+class BuildSettings:
+    detector: DetectorSettings = field(default_factory=DetectorSettings)
+    spacing_deg: float = 10.0
+    ratio: float = 0.8
+    max_reproj_px: float = 2.0
+    min_angle_deg: float = 2.5
+    epipolar_px: float = 2.0
+    neighbours: int = 2  # match each keyframe with this many keyframes on each side
+    roi: ROI = field(default_factory=ROI)
+    max_video_frames: int = 400  # frames examined in a video (evenly spaced)
+
+
+@dataclass
+class View:
+    """An input view with a known pose; the image is loaded lazily (None until needed)."""
+
+    name: str
+    pose: Pose
+    path: Path | None = None
+    image: np.ndarray | None = None  # grey
+
+
+# --------------------------------------------------------------------------------------
+# fiducial boards
+# --------------------------------------------------------------------------------------
+@dataclass
+class BoardSpec:
+    """A ChArUco or ArUco grid board and where it lies in W (see `load_board`)."""
+
+    type: str
+    squares: tuple[int, int]
+    square_m: float
+    marker_m: float
+    dictionary: str
+    separation_m: float = 0.0
+    legacy_pattern: bool = False
+    origin_m: tuple = (0.0, 0.0, 0.0)
+    yaw_deg: float = 0.0
+    placement: str = "ground"  # ground: lying face up, W z up | board: W = board frame
+
+    def make(self):
+        try:
+            d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+            if self.type == "charuco":
+                b = cv2.aruco.CharucoBoard(self.squares, self.square_m, self.marker_m, d)
+                b.setLegacyPattern(bool(self.legacy_pattern))
+            else:
+                b = cv2.aruco.GridBoard(self.squares, self.marker_m, self.separation_m, d)
+        except cv2.error as e:
+            raise InputError(
+                f"board: OpenCV rejects it: {str(e).strip().splitlines()[-1]}"
+            ) from None
+        return b
+
+    @property
+    def T_wb(self) -> Pose:
+        """Board frame -> W. OpenCV's board frame has x along the printed rows, y down the
+        printed image and z into the board; lying face up, that is W's x, -y, -z."""
+        flip = np.diag([1.0, -1.0, -1.0]) if self.placement == "ground" else np.eye(3)
+        R = matrix_from_rpy(0, 0, np.radians(self.yaw_deg)) @ flip
+        return Pose(R, np.asarray(self.origin_m, float))
+
+    def to_yaml(self) -> dict:
+        d = {
+            "type": self.type,
+            "squares": list(self.squares),
+            "square_m": self.square_m,
+            "marker_m": self.marker_m,
+            "dictionary": self.dictionary,
+        }
+        if self.type == "aruco_grid":
+            d["separation_m"] = self.separation_m
+        else:
+            d["legacy_pattern"] = self.legacy_pattern
+        d.update(origin_m=[float(v) for v in self.origin_m], yaw_deg=self.yaw_deg)
+        d["placement"] = self.placement
+        return d
+
+
+def load_board(path) -> BoardSpec:
+    p = require_file(path, "board file")
+    try:
+        d = yaml.safe_load(p.read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as e:
+        raise InputError(f"board file {p} is not valid YAML: {str(e).splitlines()[0]}") from None
+    if not isinstance(d, dict):
+        raise InputError(f"board file {p}: expected a mapping with type, squares, ...")
+    try:
+        t = str(d.get("type", "charuco")).lower()
+        if t not in ("charuco", "aruco_grid"):
+            raise InputError(f"board file {p}: type must be charuco or aruco_grid, got {t!r}")
+        cols, rows = (int(v) for v in d["squares"])
+        spec = BoardSpec(
+            type=t,
+            squares=(cols, rows),
+            square_m=float(d.get("square_m", 0.0)),
+            marker_m=float(d["marker_m"]),
+            dictionary=str(d.get("dictionary", "DICT_4X4_50")).upper(),
+            separation_m=float(d.get("separation_m", 0.0)),
+            legacy_pattern=bool(d.get("legacy_pattern", False)),
+            origin_m=tuple(float(v) for v in d.get("origin_m", (0, 0, 0))),
+            yaw_deg=float(d.get("yaw_deg", 0.0)),
+            placement=str(d.get("placement", "ground")),
+        )
+    except KeyError as e:
+        raise InputError(f"board file {p}: missing key {e}") from None
+    except (TypeError, ValueError) as e:
+        raise InputError(f"board file {p}: bad value ({e})") from None
+    if not hasattr(cv2.aruco, spec.dictionary) or not spec.dictionary.startswith("DICT_"):
+        raise InputError(f"board file {p}: unknown dictionary {spec.dictionary!r}")
+    if len(spec.origin_m) != 3 or spec.placement not in ("ground", "board"):
+        raise InputError(f"board file {p}: origin_m needs 3 numbers, placement ground|board")
+    if spec.type == "charuco" and not (0 < spec.marker_m < spec.square_m):
+        raise InputError(f"board file {p}: need 0 < marker_m < square_m")
+    if min(cols, rows) < 2 or spec.marker_m <= 0:
+        raise InputError(f"board file {p}: need at least 2x2 squares and marker_m > 0")
+    return spec
+
+
+class BoardPoser:
+    """Pose of the camera in W from the board in one image (None + reason when unreliable)."""
+
+    def __init__(self, spec: BoardSpec, camera: Camera, max_rms_px: float = 1.5):
+        self.spec, self.camera, self.max_rms = spec, camera, max_rms_px
+        self.board = spec.make()
+        try:
+            if spec.type == "charuco":
+                self.det = cv2.aruco.CharucoDetector(self.board)
+            else:
+                self.det = cv2.aruco.ArucoDetector(self.board.getDictionary())
+        except cv2.error as e:
+            raise InputError(f"board: cannot create detector: {e}") from None
+
+    def correspondences(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            if self.spec.type == "charuco":
+                ch_corners, ch_ids, _, _ = self.det.detectBoard(gray)
+                if ch_ids is None or len(ch_ids) < 4:
+                    return np.zeros((0, 3)), np.zeros((0, 2))
+                obj = self.board.getChessboardCorners()[ch_ids.ravel()]
+                return obj.astype(float), ch_corners.reshape(-1, 2).astype(float)
+            corners, ids, _ = self.det.detectMarkers(gray)
+            if ids is None or len(ids) == 0:
+                return np.zeros((0, 3)), np.zeros((0, 2))
+            obj, img = self.board.matchImagePoints(corners, ids)
+            if obj is None:
+                return np.zeros((0, 3)), np.zeros((0, 2))
+            return obj.reshape(-1, 3).astype(float), img.reshape(-1, 2).astype(float)
+        except cv2.error:
+            return np.zeros((0, 3)), np.zeros((0, 2))
+
+    def pose(self, gray: np.ndarray) -> tuple[Pose | None, str]:
+        obj, img = self.correspondences(gray)
+        if len(obj) < 6:
+            return None, f"board not found ({len(obj)} corners detected, need 6)"
+        spread = np.linalg.svd(obj[:, :2] - obj[:, :2].mean(0), compute_uv=False)
+        if spread[1] < 0.5 * max(self.spec.square_m, self.spec.marker_m):
+            return None, "board corners nearly collinear"
+        try:
+            ok, rvec, tvec = cv2.solvePnP(
+                obj, img, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE
+            )
+            if ok:
+                rvec, tvec = cv2.solvePnPRefineLM(
+                    obj, img, self.camera.K, self.camera.dist, rvec, tvec
+                )
+        except cv2.error as e:
+            return None, f"pose from board failed ({str(e).strip().splitlines()[-1]})"
+        if not ok:
+            return None, "pose from board failed"
+        T_cb = Pose.from_rvec_tvec(rvec, tvec)
+        rms = float(np.sqrt(np.mean(np.sum((self.camera.project(obj, T_cb) - img) ** 2, 1))))
+        if rms > self.max_rms:
+            return None, f"board reprojection error {rms:.1f} px > {self.max_rms:g} px"
+        return T_cb @ self.spec.T_wb.inverse(), f"{len(obj)} corners, {rms:.2f} px"
+
+
+# --------------------------------------------------------------------------------------
+# views and keyframe selection
+# --------------------------------------------------------------------------------------
+def _check_size(img: np.ndarray, camera: Camera, name: str) -> None:
+    h, w = img.shape[:2]
+    if (w, h) != camera.size:
+        raise InputError(
+            f"{name} is {w}x{h} but the camera file is for {camera.width}x{camera.height}; "
+            "use the camera calibrated for these images (or resize them)"
+        )
+
+
+def _gray(img: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+
+
+def view_direction(pose: Pose) -> tuple[float, float]:
+    """(azimuth, elevation) in degrees of the camera centre seen from W's origin."""
+    c = pose.center
+    return pose.azimuth_deg, float(np.degrees(np.arctan2(c[2], np.hypot(c[0], c[1]))))
+
+
+def select_keyframes(poses: list[Pose], spacing_deg: float) -> list[int]:
+    """Indices of one view per azimuth bin (and elevation band when heights differ),
+    the one nearest the bin centre; ordered by band, then azimuth."""
+    if not poses:
+        return []
+    az, el = np.array([view_direction(p) for p in poses]).T
+    bands = (
+        np.zeros(len(poses), int)
+        if np.ptp(el) < spacing_deg / 2
+        else np.round((el - el.min()) / spacing_deg).astype(int)
+    )
+    nbins = max(1, int(round(360.0 / spacing_deg)))
+    pos = np.mod(az, 360.0) / (360.0 / nbins)
+    bins = np.mod(np.round(pos).astype(int), nbins)
+    off = np.abs(pos - np.round(pos))
+    best: dict[tuple[int, int], int] = {}
+    for i in np.lexsort((np.arange(len(poses)), off)):  # nearest to the bin centre first
+        best.setdefault((int(bands[i]), int(bins[i])), int(i))
+    return [best[k] for k in sorted(best)]
+
+
+def views_from_inputs(
+    inputs,
+    camera: Camera,
+    settings: BuildSettings,
+    poses_csv=None,
+    board: BoardSpec | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[View]:
+    """Resolve INPUT into the selected keyframe views (images loaded, sizes checked)."""
+    if (poses_csv is None) == (board is None):
+        raise InputError("give exactly one of --poses (pose CSV) or --board (board YAML)")
+    media = resolve_inputs(inputs, "images of the landmark")
+    if media.is_video:
+        return _views_from_video(media.video, camera, settings, poses_csv, board, progress)
+    paths = media.images
+    if poses_csv is not None:
+        known = poses_by_frame(read_pose_csv(poses_csv))
+        views, missing = [], []
+        for p in paths:
+            pose = next((known[k] for k in (p.name, str(p), p.stem) if k in known), None)
+            if pose is None:
+                missing.append(p.name)
+            else:
+                views.append(View(p.name, pose, p))
+        if missing and not views:
+            raise InputError(
+                f"pose file {poses_csv} has no rows for the images (e.g. {missing[0]}); its "
+                "'frame' (or 'image') column must hold the image file names"
+            )
+        if missing:
+            log.warning(
+                f"skipping {len(missing)} image(s) without an ok pose in {poses_csv}: "
+                + ", ".join(missing[:5])
+                + (" ..." if len(missing) > 5 else "")
+            )
+        _need_two(views, "images with a pose")
+        keep = [views[i] for i in select_keyframes([v.pose for v in views], settings.spacing_deg)]
+        for k, v in enumerate(keep):
+            img = read_image(v.path, gray=True)
+            _check_size(img, camera, v.name)
+            v.image = img
+            if progress:
+                progress(k + 1, len(keep))
+        return keep
+    poser = BoardPoser(board, camera)
+    views = []
+    for k, p in enumerate(paths):
+        img = read_image(p, gray=True)
+        _check_size(img, camera, p.name)
+        pose, why = poser.pose(img)
+        if pose is None:
+            log.warning(f"skipping {p.name}: {why}")
+        else:
+            views.append(View(p.name, pose, p, img))
+        if progress:
+            progress(k + 1, len(paths))
+    _need_two(views, "images where the board gives a reliable pose")
+    return [views[i] for i in select_keyframes([v.pose for v in views], settings.spacing_deg)]
+
+
+def _need_two(views: list, what: str) -> None:
+    if len(views) < 2:
+        raise InputError(
+            f"only {len(views)} usable view(s) ({what}); a model needs at least 2 views "
+            "of the landmark from different directions"
+        )
+
+
+def _views_from_video(video, camera, settings, poses_csv, board, progress) -> list[View]:
+    info = video_info(video)
+    if (info.width, info.height) != camera.size:
+        _check_size(np.zeros((info.height, info.width), np.uint8), camera, f"video {video.name}")
+    if poses_csv is not None:
+        known = poses_by_frame(read_pose_csv(poses_csv))
+        frames = {}
+        for k, pose in known.items():
+            try:
+                frames[int(float(k))] = pose
+            except ValueError:
+                continue
+        if not frames:
+            raise InputError(
+                f"pose file {poses_csv} has no rows with frame numbers for video {video.name}"
+            )
+        idx = sorted(frames)
+        sel = [idx[i] for i in select_keyframes([frames[i] for i in idx], settings.spacing_deg)]
+        _need_two(sel, "video frames with a pose")
+        wanted = set(sel)
+        got: dict[int, np.ndarray] = {}
+        for i, _, frame in iter_video(video, 1, gray=True):
+            if i in wanted:
+                got[i] = frame
+                if progress:
+                    progress(len(got), len(wanted))
+            if len(got) == len(wanted) or i > max(wanted):
+                break
+        lost = sorted(wanted - set(got))
+        if lost:
+            log.warning(f"frames {lost[:5]} of {video.name} could not be read; skipped")
+        views = [View(f"frame_{i:06d}", frames[i], None, got[i]) for i in sel if i in got]
+        _need_two(views, "readable video frames with a pose")
+        return views
+    poser = BoardPoser(board, camera)
+    step = max(1, -(-info.frames // settings.max_video_frames)) if info.frames else 1
+    cand: list[View] = []
+    bad = 0
+    for i, _, frame in iter_video(video, step, gray=True):
+        pose, _ = poser.pose(frame)
+        if pose is None:
+            bad += 1
+        else:
+            cand.append(View(f"frame_{i:06d}", pose, None, frame))
+            # keep memory bounded: reselect whenever the candidates pile up
+            if len(cand) > 4 * 360 / settings.spacing_deg:
+                cand = [cand[j] for j in select_keyframes([v.pose for v in cand], 1.0)]
+        if progress:
+            progress(i // step + 1, max(1, info.frames // step))
+    if bad:
+        log.warning(f"{bad} sampled frame(s) of {video.name} skipped: no reliable board pose")
+    _need_two(cand, "video frames where the board gives a reliable pose")
+    return [cand[j] for j in select_keyframes([v.pose for v in cand], settings.spacing_deg)]
+
+
+# --------------------------------------------------------------------------------------
+# matching, tracks, triangulation
+# --------------------------------------------------------------------------------------
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def keyframe_pairs(poses: list[Pose], spacing_deg: float, neighbours: int = 2) -> list:
+    """Pairs of keyframes that see the landmark from directions at most `neighbours`
+    spacings apart (1- and 2-apart neighbours by default, across elevation bands too)."""
+    dirs = np.array([p.center for p in poses])
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1, 1)))
+    lim = (neighbours + 0.5) * spacing_deg
+    i, j = np.nonzero(np.triu(ang <= lim, 1))
+    return list(zip(i.tolist(), j.tolist(), strict=True))
+
+
+def epipolar_ok(xa: np.ndarray, xb: np.ndarray, pa: Pose, pb: Pose, tol: float) -> np.ndarray:
+    """Sampson distance of normalised correspondences under the known relative pose."""
+    rel = pb @ pa.inverse()
+    E = _skew(rel.t) @ rel.R
+    ha = np.column_stack([xa, np.ones(len(xa))])
+    hb = np.column_stack([xb, np.ones(len(xb))])
+    Ea = ha @ E.T
+    Eb = hb @ E
+    num = np.einsum("ij,ij->i", hb, Ea) ** 2
+    den = Ea[:, 0] ** 2 + Ea[:, 1] ** 2 + Eb[:, 0] ** 2 + Eb[:, 1] ** 2
+    return num / np.maximum(den, 1e-30) < tol**2
+
+
+def triangulate(
+    x: np.ndarray, Rs: np.ndarray, ts: np.ndarray, track: np.ndarray, n_tracks: int, iters: int = 5
+) -> np.ndarray:
+    """Points (T,3) from normalised observations x (N,2) of `track` ids seen by cameras
+    (Rs (N,3,3), ts (N,3)): DLT summed per track, then Gauss-Newton on the reprojection."""
+    P = np.concatenate([Rs, ts[:, :, None]], axis=2)  # (N,3,4)
+    r1 = x[:, 0:1] * P[:, 2] - P[:, 0]
+    r2 = x[:, 1:2] * P[:, 2] - P[:, 1]
+    A = np.einsum("ni,nj->nij", r1, r1) + np.einsum("ni,nj->nij", r2, r2)
+    M = np.zeros((n_tracks, 4, 4))
+    np.add.at(M, track, A)
+    _, vecs = np.linalg.eigh(M)
+    h = vecs[:, :, 0]
+    w = np.where(np.abs(h[:, 3]) < 1e-12, 1e-12, h[:, 3])
+    X = h[:, :3] / w[:, None]
+    for _ in range(iters):
+        Xc = np.einsum("nij,nj->ni", Rs, X[track]) + ts
+        z = np.where(np.abs(Xc[:, 2]) < 1e-9, 1e-9, Xc[:, 2])
+        res = Xc[:, :2] / z[:, None] - x
+        Jp = np.zeros((len(x), 2, 3))
+        Jp[:, 0, 0] = Jp[:, 1, 1] = 1 / z
+        Jp[:, 0, 2] = -Xc[:, 0] / z**2
+        Jp[:, 1, 2] = -Xc[:, 1] / z**2
+        J = Jp @ Rs
+        H = np.zeros((n_tracks, 3, 3))
+        g = np.zeros((n_tracks, 3))
+        np.add.at(H, track, np.einsum("nki,nkj->nij", J, J))
+        np.add.at(g, track, np.einsum("nki,nk->ni", J, res))
+        H += 1e-12 * np.eye(3)
+        X = X - np.linalg.solve(H, g[:, :, None])[:, :, 0]
+    return X
+
+
+@dataclass
+class Tracks:
+    """Observations (keyframe, feature) grouped into tracks, one per candidate 3D point."""
+
+    kf: np.ndarray
+    feat: np.ndarray
+    track: np.ndarray
+    n: int
+
+
+def build_tracks(matches: list, offsets: np.ndarray) -> Tracks:
+    """Connected components of the match graph; components in which one keyframe appears
+    twice are inconsistent (two features, one point) and dropped."""
+    total = int(offsets[-1])
+    if not matches:
+        return Tracks(*(np.zeros(0, int),) * 3, 0)
+    a = np.concatenate([offsets[i] + qa for i, _, qa, _ in matches])
+    b = np.concatenate([offsets[j] + qb for _, j, _, qb in matches])
+    g = coo_matrix((np.ones(len(a)), (a, b)), shape=(total, total))
+    _, label = connected_components(g, directed=False)
+    node = np.unique(np.concatenate([a, b]))
+    lab = label[node]
+    kf = np.searchsorted(offsets, node, side="right") - 1
+    # drop components with a repeated keyframe
+    key = lab.astype(np.int64) * (len(offsets) + 1) + kf
+    _, inv, cnt = np.unique(key, return_inverse=True, return_counts=True)
+    bad_lab = np.unique(lab[cnt[inv] > 1])
+    keep = ~np.isin(lab, bad_lab)
+    node, lab, kf = node[keep], lab[keep], kf[keep]
+    uniq, track = np.unique(lab, return_inverse=True)
+    return Tracks(kf, node - offsets[kf], track, len(uniq))
+
+
+@dataclass
+class BuildResult:
+    model: LandmarkModel
+    pairs: int
+    matches: int
+    tracks: int
+    rejected: dict
+
+
+def build_model(
+    views: list[View],
+    camera: Camera,
+    settings: BuildSettings,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> BuildResult:
+    """Keyframes, features and 3D points from views with known poses (images loaded)."""
+    _need_two(views, "views")
+    det = make_detector(settings.detector)
+    kps, descs, norm = [], [], []
+    for k, v in enumerate(views):
+        kp, d = detect(v.image, det)
+        kps.append(kp)
+        descs.append(d)
+        norm.append(camera.undistort_points(kp))
+        if progress:
+            progress("features", k + 1, len(views))
+    poses = [v.pose for v in views]
+    pairs = keyframe_pairs(poses, settings.spacing_deg, settings.neighbours)
+    f = max(camera.fx, camera.fy)
+    matches = []
+    for k, (i, j) in enumerate(pairs):
+        qi, ti = ratio_match(descs[i], descs[j], settings.ratio)
+        ok = epipolar_ok(norm[i][qi], norm[j][ti], poses[i], poses[j], settings.epipolar_px / f)
+        if ok.any():
+            matches.append((i, j, qi[ok], ti[ok]))
+        if progress:
+            progress("matching", k + 1, len(pairs))
+    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
+    tr = build_tracks(matches, offsets)
+    roi = settings.roi.resolved(poses)
+    X, kf, feat, track, rejected = _triangulate_tracks(tr, norm, kps, poses, camera, settings, roi)
+    point_ids = [np.full(len(k), -1, np.int32) for k in kps]
+    for i in range(len(views)):
+        m = kf == i
+        point_ids[i][feat[m]] = track[m]
+    keyframes = [
+        Keyframe(v.name, v.pose, kps[i], descs[i], point_ids[i], make_thumbnail(v.image))
+        for i, v in enumerate(views)
+    ]
+    meta = {
+        "spacing_deg": settings.spacing_deg,
+        "roi": {"kind": roi.kind, "values": list(roi.values)},
+        "max_reproj_px": settings.max_reproj_px,
+        "min_angle_deg": settings.min_angle_deg,
+        "ratio": settings.ratio,
+    }
+    model = LandmarkModel(camera, settings.detector, keyframes, X, meta=meta)
+    n_matches = int(sum(len(m[2]) for m in matches))
+    return BuildResult(model, len(pairs), n_matches, tr.n, rejected)
+
+
+def _triangulate_tracks(tr: Tracks, norm, kps, poses, camera, settings, roi):
+    """Triangulate, then twice drop observations beyond the pixel limit and retriangulate;
+    finally keep points that pass every test. Returns points and their observations."""
+    Rall = np.array([p.R for p in poses])
+    tall = np.array([p.t for p in poses])
+    kf, feat, track, n = tr.kf, tr.feat, tr.track, tr.n
+    rejected = {"reprojection": 0, "angle": 0, "behind": 0, "roi": 0}
+    if n == 0:
+        return np.zeros((0, 3)), kf, feat, track, rejected
+    x = np.concatenate([norm[i][feat[kf == i]] for i in range(len(poses))]) if len(kf) else None
+    order = np.concatenate([np.flatnonzero(kf == i) for i in range(len(poses))])
+    kf, feat, track = kf[order], feat[order], track[order]
+    uv = np.concatenate([kps[i][feat[kf == i]] for i in range(len(poses))]).astype(float)
+    for _ in range(3):
+        X = triangulate(x, Rall[kf], tall[kf], track, n)
+        err = _reproj(X[track], kf, uv, poses, camera)
+        good = err <= settings.max_reproj_px
+        cnt = np.bincount(track[good], minlength=n)
+        if good.all():
+            break
+        keep = good & (cnt[track] >= 2)
+        kf, feat, track, x, uv = kf[keep], feat[keep], track[keep], x[keep], uv[keep]
+        used, track = np.unique(track, return_inverse=True)
+        n = len(used)
+        if n == 0:
+            return np.zeros((0, 3)), kf, feat, track, rejected
+    X = triangulate(x, Rall[kf], tall[kf], track, n)
+    err = _reproj(X[track], kf, uv, poses, camera)
+    depth = np.einsum("nj,nj->n", Rall[kf, 2], X[track]) + tall[kf, 2]
+    obs_bad = (err > settings.max_reproj_px) | ~np.isfinite(err)
+    bad_reproj = np.bincount(track[obs_bad], minlength=n) > 0
+    behind = np.bincount(track[depth <= 0], minlength=n) > 0
+    angle = _max_angle(X, kf, track, poses, n)
+    low_angle = angle < settings.min_angle_deg
+    out_roi = ~roi.contains(X)
+    ok = ~(bad_reproj | behind | low_angle | out_roi)
+    rejected.update(
+        reprojection=int(bad_reproj.sum()),
+        behind=int((behind & ~bad_reproj).sum()),
+        angle=int((low_angle & ~bad_reproj & ~behind).sum()),
+        roi=int((out_roi & ~low_angle & ~bad_reproj & ~behind).sum()),
+    )
+    new_id = np.full(n, -1)
+    new_id[ok] = np.arange(ok.sum())
+    m = ok[track]
+    return X[ok], kf[m], feat[m], new_id[track[m]], rejected
+
+
+def _reproj(Xobs, kf, uv, poses, camera) -> np.ndarray:
+    err = np.empty(len(kf))
+    for i in np.unique(kf):
+        m = kf == i
+        err[m] = np.linalg.norm(camera.project(Xobs[m], poses[i]) - uv[m], axis=1)
+    return err
+
+
+def _max_angle(X, kf, track, poses, n) -> np.ndarray:
+    """Largest angle (deg) between the viewing rays of each point (padded, vectorised)."""
+    C = np.array([p.center for p in poses])
+    rays = C[kf] - X[track]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    order = np.argsort(track, kind="stable")
+    t_sorted = track[order]
+    start = np.searchsorted(t_sorted, np.arange(n))
+    slot = np.arange(len(track)) - start[t_sorted]
+    L = int(slot.max()) + 1 if len(slot) else 1
+    pad = np.full((n, L, 3), np.nan)
+    pad[t_sorted, slot] = rays[order]
+    dots = np.einsum("tai,tbi->tab", pad, pad)
+    min_dot = np.nanmin(np.where(np.isnan(dots), 2.0, dots).reshape(n, -1), axis=1)
+    return np.degrees(np.arccos(np.clip(min_dot, -1, 1)))
+
+
+def coverage_warning(model: LandmarkModel) -> str | None:
+    spacing = float(model.meta.get("spacing_deg", 10.0))
+    gap, _ = azimuth_gaps(model.azimuths(), spacing)
+    if gap > 2 * spacing:
+        a = np.sort(np.mod(model.azimuths(), 360.0))
+        gaps = np.diff(np.concatenate([a, [a[0] + 360.0]]))
+        k = int(np.argmax(gaps))
+        lo, hi = a[k], np.mod(a[k] + gaps[k], 360)
+        return (
+            f"azimuth gap of {gap:.0f} deg between {lo:.0f} and {hi:.0f} deg (more than twice "
+            f"the {spacing:g} deg spacing): the landmark will not be recognised from there; "
+            "add views of that side"
+        )
+    return None

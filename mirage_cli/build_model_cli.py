@@ -1,0 +1,251 @@
+"""`mirage build-model` and `mirage inspect`: thin CLI over mirage_cli.build_model / model."""
+
+from __future__ import annotations
+
+import time
+
+import click
+import numpy as np
+
+from . import ui
+from .build_model import (
+    ROI,
+    BuildSettings,
+    build_model,
+    coverage_warning,
+    load_board,
+    views_from_inputs,
+)
+from .camera import Camera
+from .errors import InputError
+from .features import DETECTORS, DetectorSettings
+from .fileio import atomic_path, check_writable
+from .model import LandmarkModel
+
+
+def summary_lines(model: LandmarkModel) -> list[str]:
+    s = model.summary()
+    return [
+        f"keyframes          {s['keyframes']} ({s['detector']}, spacing {s['spacing_deg']:g} deg)",
+        f"3D points          {s['points']} (linked per keyframe: min "
+        f"{s['linked_per_keyframe_min']}, median {s['linked_per_keyframe_median']:.0f})",
+        f"mean track length  {s['mean_track_length']:.2f} views",
+        f"reprojection error mean {s['mean_reprojection_px']:.3f} px, "
+        f"RMS {s['rms_reprojection_px']:.3f} px",
+        f"azimuth coverage   {s['azimuth_coverage_deg']:.0f} deg "
+        f"(largest gap {s['largest_gap_deg']:.0f} deg)",
+    ]
+
+
+class _Stages:
+    """One progress bar per stage of the build (silent when stdout is not a terminal)."""
+
+    def __init__(self):
+        self.name, self.cm, self.bar = None, None, None
+
+    def __call__(self, name: str, k: int, n: int) -> None:
+        if name != self.name:
+            self.close()
+            self.name, self.cm = name, ui.progress(n, name)
+            self.bar = self.cm.__enter__()
+        self.bar.update(1)
+
+    def close(self) -> None:
+        if self.cm is not None:
+            self.cm.__exit__(None, None, None)
+        self.name, self.cm, self.bar = None, None, None
+
+
+@click.command("build-model")
+@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
+@click.option(
+    "--camera",
+    "camera_path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Camera YAML (from mirage calibrate).",
+)
+@click.option(
+    "--poses",
+    "poses_path",
+    type=click.Path(dir_okay=False),
+    help="Pose CSV: one row per image (frame = file name) or video frame (frame = index).",
+)
+@click.option(
+    "--board",
+    "board_path",
+    type=click.Path(dir_okay=False),
+    help="Board YAML: a ChArUco / ArUco grid board in view gives each pose and defines W.",
+)
+@click.option(
+    "-o",
+    "--output",
+    default="landmark.mirage",
+    show_default=True,
+    type=click.Path(dir_okay=False),
+    help="Model file to write.",
+)
+@click.option(
+    "--spacing-deg",
+    type=click.FloatRange(1, 90),
+    default=10.0,
+    show_default=True,
+    help="One keyframe per this much azimuth (per elevation band).",
+)
+@click.option("--detector", type=click.Choice(DETECTORS), default="sift", show_default=True)
+@click.option("--nfeatures", type=click.IntRange(min=50), default=2000, show_default=True)
+@click.option(
+    "--roi",
+    default="auto",
+    show_default=True,
+    help="Volume of interest: auto | none | R,ZMIN,ZMAX (cylinder about the origin) | "
+    "XMIN,XMAX,YMIN,YMAX,ZMIN,ZMAX (box), metres.",
+)
+@click.option(
+    "--max-reproj-px",
+    type=click.FloatRange(min=0.1),
+    default=2.0,
+    show_default=True,
+    help="Keep points that reproject within this in every view.",
+)
+@click.option(
+    "--min-angle-deg",
+    type=click.FloatRange(min=0),
+    default=2.5,
+    show_default=True,
+    help="Minimum triangulation angle.",
+)
+def build_model_cmd(
+    inputs,
+    camera_path,
+    poses_path,
+    board_path,
+    output,
+    spacing_deg,
+    detector,
+    nfeatures,
+    roi,
+    max_reproj_px,
+    min_angle_deg,
+):
+    """Build a 360-degree landmark model from images (a folder or glob) or a video.
+
+    Each view's pose comes from a pose CSV (--poses) or a fiducial board in view
+    (--board). Example:
+
+      mirage build-model sample_data/keyframes --poses sample_data/keyframes/poses.csv
+      --camera sample_data/camera_truth.yaml -o landmark.mirage
+    """
+    if (poses_path is None) == (board_path is None):
+        raise InputError("give exactly one of --poses FILE or --board FILE")
+    check_writable(output)
+    t0 = time.perf_counter()
+    camera = Camera.load(camera_path)
+    board = load_board(board_path) if board_path else None
+    settings = BuildSettings(
+        detector=DetectorSettings(detector, nfeatures),
+        spacing_deg=spacing_deg,
+        max_reproj_px=max_reproj_px,
+        min_angle_deg=min_angle_deg,
+        roi=ROI.parse(roi),
+    )
+    stages = _Stages()
+    try:
+        views = views_from_inputs(
+            inputs, camera, settings, poses_path, board, lambda k, n: stages("views", k, n)
+        )
+        res = build_model(views, camera, settings, stages)
+    finally:
+        stages.close()
+    model = res.model
+    if len(model.points) == 0:
+        raise InputError(
+            "no 3D points could be triangulated: are the views close enough in direction "
+            "(see --spacing-deg) and the poses right? (try --roi none)"
+        )
+    model.meta["source"] = {
+        "inputs": list(inputs),
+        "poses": poses_path,
+        "board": board.to_yaml() if board else None,
+    }
+    model.save(output)
+    weak = [kf.name for kf in model.keyframes if kf.n_linked < 30]
+    if weak:
+        ui.log.warning(
+            f"{len(weak)} keyframe(s) have fewer than 30 3D points ({', '.join(weak[:5])}); "
+            "tracking from those directions will be weak"
+        )
+    gap = coverage_warning(model)
+    if gap:
+        ui.log.warning(gap)
+    r = res.rejected
+    ui.echo(f"build-model: wrote {output} in {time.perf_counter() - t0:.1f} s")
+    for line in summary_lines(model):
+        ui.echo("  " + line)
+    ui.echo(
+        f"  candidates         {res.tracks} tracks from {res.matches} matches in {res.pairs} "
+        f"keyframe pairs; dropped: {r['reprojection']} reprojection, {r['angle']} angle, "
+        f"{r['behind']} behind camera, {r['roi']} outside ROI"
+    )
+
+
+@click.command("inspect")
+@click.argument("model_path", metavar="MODEL", type=click.Path(dir_okay=False))
+@click.option(
+    "--plot",
+    type=click.Path(dir_okay=False),
+    help="Write a top view (PNG) of the keyframes and 3D points.",
+)
+def inspect_cmd(model_path, plot):
+    """Print a landmark model's summary; optionally plot it from above."""
+    t0 = time.perf_counter()
+    model = LandmarkModel.load(model_path)
+    dt = time.perf_counter() - t0
+    if plot:
+        check_writable(plot)
+    ui.echo(f"{model_path}: format version {model.version}, loaded in {dt * 1000:.0f} ms")
+    c = model.camera
+    ui.echo(f"  camera             {c.width}x{c.height}, fx {c.fx:.1f} px")
+    for line in summary_lines(model):
+        ui.echo("  " + line)
+    roi = model.meta.get("roi")
+    if roi:
+        ui.echo(f"  volume of interest {roi.get('kind')} {roi.get('values')}")
+    gap = coverage_warning(model)
+    if gap:
+        ui.log.warning(gap)
+    if plot:
+        write_top_view(model, plot)
+        ui.echo(f"  plot               {plot}")
+
+
+def write_top_view(model: LandmarkModel, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 7))
+    X = model.points
+    if len(X):
+        sc = ax.scatter(X[:, 0], X[:, 1], s=2, c=X[:, 2], cmap="viridis", label="3D points")
+        fig.colorbar(sc, ax=ax, shrink=0.7, label="z (m)")
+    C = np.array([kf.pose.center for kf in model.keyframes])
+    axis = np.array([kf.pose.R[2] for kf in model.keyframes])
+    ax.scatter(C[:, 0], C[:, 1], marker="^", c="tab:red", s=30, label="keyframes")
+    ax.quiver(C[:, 0], C[:, 1], axis[:, 0], axis[:, 1], color="tab:red", width=0.003)
+    for kf, c in zip(model.keyframes, C, strict=True):
+        ax.annotate(f"{kf.n_linked}", c[:2], fontsize=6, xytext=(3, 3), textcoords="offset points")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    s = model.summary()
+    ax.set_title(
+        f"{s['keyframes']} keyframes, {s['points']} points, "
+        f"RMS {s['rms_reprojection_px']:.2f} px (labels: points per keyframe)"
+    )
+    ax.legend(loc="upper right", fontsize=8)
+    ax.grid(alpha=0.3)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    plt.close(fig)
