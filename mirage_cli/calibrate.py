@@ -130,14 +130,16 @@ def find_corners(
 def _find_chessboard(gray, board: Board, subpix_window=None):
     size = (board.cols, board.rows)
     norm = cv2.CALIB_CB_NORMALIZE_IMAGE
+    # Classic first: ~30x faster than SB on clean views, and after cornerSubPix its
+    # corners are as accurate; SB (then exhaustive SB) rescues blurred or hard views.
     attempts = (
-        ("sb", lambda: cv2.findChessboardCornersSB(gray, size, flags=norm)),
         (
             "classic",
             lambda: cv2.findChessboardCorners(
                 gray, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | norm
             ),
         ),
+        ("sb", lambda: cv2.findChessboardCornersSB(gray, size, flags=norm)),
         (
             "sb",
             lambda: cv2.findChessboardCornersSB(gray, size, flags=norm | cv2.CALIB_CB_EXHAUSTIVE),
@@ -266,6 +268,8 @@ def detect_images(
 ) -> Detections:
     """Find the board in each image, in parallel (OpenCV releases the GIL)."""
     workers = default_workers() if workers is None else max(1, workers)
+
+    paths = [Path(p) for p in paths]
 
     def one(path: Path):
         try:
