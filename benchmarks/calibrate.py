@@ -3,7 +3,8 @@
     python benchmarks/calibrate.py [--runs 5]
 
 Images: sample_data/calibration (rendered, with camera_truth.yaml) when present, else the
-13 real photos in tests/data/chessboard-right cycled to 20. Prints a markdown table.
+13 real photos in tests/data/chessboard-right cycled to 20 (also with --real).
+Prints a markdown table.
 """
 
 from __future__ import annotations
@@ -26,9 +27,9 @@ REAL = ROOT / "tests" / "data" / "chessboard-right"
 BOARD = Board(9, 6, 0.025)
 
 
-def images() -> tuple[list[Path], Camera | None, str]:
+def images(real: bool = False) -> tuple[list[Path], Camera | None, str]:
     truth = ROOT / "sample_data" / "camera_truth.yaml"
-    found = sorted(SYNTH.glob("*.jpg")) if SYNTH.is_dir() else []
+    found = sorted(SYNTH.glob("*.jpg")) if SYNTH.is_dir() and not real else []
     if len(found) >= 20 and truth.is_file():
         return found[:20], Camera.load(truth), "sample_data/calibration (rendered)"
     return list(islice(cycle(sorted(REAL.glob("*.jpg"))), 20)), None, "real photos x20"
@@ -69,8 +70,9 @@ def timed(fn, runs):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--real", action="store_true", help="use the real photos (cycled to 20)")
     args = ap.parse_args()
-    paths, truth, label = images()
+    paths, truth, label = images(args.real)
     rows = [
         ("plain OpenCV loop", *timed(lambda: run_opencv(paths), args.runs)),
         ("mirage_cli.calibrate, 1 worker", *timed(lambda: run_mirage(paths, 1), args.runs)),
