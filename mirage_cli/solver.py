@@ -40,6 +40,7 @@ _CV_FLAGS = {
 }
 _RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median of |r| for 2D N(0, s^2 I) is 1.1774 s
 _MIN_DEPTH = 1e-6  # m: points closer to (or behind) the camera plane are invalid
+_PLANAR_SWITCH = 0.25  # take the other planar minimum only if its cost is below this fraction
 _MIN_ROBUST = 6  # below this many points (<= 4 redundant equations) robust weights only cost
 
 
@@ -239,6 +240,7 @@ def _refine(
         return "points behind the camera at the start pose"
     inv_depth = float(iz.sum()) / prob.n
     dof = 2 * prob.n - 6
+    lam = 0.0  # Levenberg-Marquardt damping, 0 = pure Gauss-Newton
     converged = False
     iterations = 0
     H = None
@@ -248,40 +250,39 @@ def _refine(
         wt = _robust_weights(r2, robust if prob.n >= _MIN_ROBUST else "none", huber_px, reject_px)
         H, g = prob.normal_equations(iz, wt, e)
         cost0 = float(np.dot(wt, r2))
-        gn = _spd_solve(H, g)
-        if gn is None:
-            return "singular system (degenerate point configuration)"
-        slope = float(gn @ g)  # cost(a) = cost0 - 2 a slope + O(a^2) along the GN step
-        if not math.isfinite(slope):
-            return "singular system (degenerate point configuration)"
-        best = None  # (cost, alpha, state)
-        trial = _try_step(prob, R, t, gn, 1.0, wt)
-        if trial is not None:
-            best = trial
-            # Exact line search on the parabola through cost0, its slope and cost(1):
-            # Gauss-Newton on a large-residual problem overshoots (or undershoots) along a
-            # weak direction and would otherwise converge only linearly there.
-            curv = trial[0] - cost0 + 2.0 * slope
-            alpha = slope / curv if curv > 0.0 else 4.0
-            alpha = min(max(alpha, 0.05), 8.0)
-            if abs(alpha - 1.0) > 0.15:
-                t2 = _try_step(prob, R, t, gn, alpha, wt)
-                if t2 is not None and t2[0] < best[0]:
-                    best = t2
-        if best is None or best[0] > cost0 * (1.0 + 1e-12) + 1e-30:
-            best = None
-            for k in range(12):  # Levenberg-Marquardt fallback: damp until the cost drops
-                lam = 1e-4 * 10.0**k
-                dl = _spd_solve(H + np.diag(lam * np.diag(H)), g)
-                if dl is None:
-                    return "singular system (degenerate point configuration)"
-                trial = _try_step(prob, R, t, dl, 1.0, wt)
-                if trial is not None and trial[0] <= cost0 * (1.0 + 1e-12) + 1e-30:
-                    best = trial
-                    break
+        # Gauss-Newton step (lam = 0) with an exact line search, else Levenberg-Marquardt:
+        # damp until the cost drops.  The damping persists (shrinking) across iterations, so
+        # a near-singular direction (small planar targets) cannot throw the pose around.
+        best = None
+        while best is None:
+            step = _spd_solve(H + np.diag(lam * np.diag(H)) if lam > 0.0 else H, g)
+            if step is None:
+                return "singular system (degenerate point configuration)"
+            slope = float(step @ g)  # cost(a) = cost0 - 2 a slope + O(a^2) along the step
+            if not math.isfinite(slope):
+                return "singular system (degenerate point configuration)"
+            trial = _try_step(prob, R, t, step, 1.0, wt)
+            if trial is not None and lam == 0.0:
+                # Exact line search on the parabola through cost0, its slope and cost(1):
+                # Gauss-Newton on a large-residual problem overshoots (or undershoots) along
+                # a weak direction and would otherwise converge only linearly there.
+                curv = trial[0] - cost0 + 2.0 * slope
+                alpha = min(slope / curv, 8.0) if curv > 0.0 else 4.0
+                if alpha >= 0.2 and abs(alpha - 1.0) > 0.15:
+                    t2 = _try_step(prob, R, t, step, alpha, wt)
+                    if t2 is not None and t2[0] < trial[0]:
+                        trial = t2
+            if trial is not None and trial[0] <= cost0 * (1.0 + 1e-12) + 1e-30:
+                best = trial
+            elif lam > 1e8:
+                break
+            else:
+                lam = 1e-6 if lam == 0.0 else lam * 4.0
         if best is None:
             converged = True  # no descent possible: at a minimum to machine precision
             break
+        damped = lam > 0.0
+        lam = 0.0 if lam <= 1e-9 else lam / 3.0
         cost1, delta, (R1, t1, e1, e21, r21, iz1) = best
         d0, d1, d2, d3, d4, d5 = delta.tolist()
         R, t = R1, t1
@@ -296,7 +297,7 @@ def _refine(
         if (
             small < tol
             or cost0 - cost1 <= 1e-14 * cost0
-            or (dof > 0 and slope < 1e-6 * cost0 / dof)
+            or (dof > 0 and not damped and slope < 1e-6 * cost0 / dof)
         ):
             converged = True
             break
@@ -480,7 +481,7 @@ def solve_pose(
     ransac_threshold_px: float = 4.0,
     seed: int = 0,
     robust: str = "huber",
-    max_iterations: int = 50,
+    max_iterations: int = 100,
     huber_px: float = 3.0,
     pixel_sigma: float | None = None,
     default_pixel_sigma: float = 1.0,
@@ -553,7 +554,7 @@ def _solve(
     ransac_threshold_px: float = 4.0,
     seed: int = 0,
     robust: str = "huber",
-    max_iterations: int = 50,
+    max_iterations: int = 100,
     huber_px: float = 3.0,
     pixel_sigma: float | None = None,
     default_pixel_sigma: float = 1.0,
@@ -713,7 +714,7 @@ def _planar_alternative(
         if (
             alt.success
             and alt.pose.angle_to(best.pose) > 0.5
-            and (alt.rmse_px**2 < 0.5 * best.rmse_px**2)
+            and (alt.rmse_px**2 < _PLANAR_SWITCH * best.rmse_px**2)
         ):
             best = alt
     return best
