@@ -389,3 +389,60 @@ def encode_jpeg(img: np.ndarray, quality: int = 95) -> bytes:
     if not ok:
         raise RuntimeError("JPEG encoding failed")
     return buf.tobytes()
+
+
+# --------------------------------------------------------------------------------------
+# opt-in: a ChArUco board lying on the ground around the landmark (`--ground-board`)
+# --------------------------------------------------------------------------------------
+GROUND_BOARD = {
+    "type": "charuco",
+    "squares": [10, 10],
+    "square_m": 0.14,
+    "marker_m": 0.105,
+    "dictionary": "DICT_4X4_250",
+    "legacy_pattern": False,
+    # W position of the printed board's top-left corner; the board lies face up, its
+    # printed x axis along W +x and its printed "up" along W +y (see build_model.BoardSpec)
+    "origin_m": [-0.7, 0.7, 0.0005],
+    "yaw_deg": 0.0,
+    "placement": "ground",
+}
+
+
+def ground_board_image(spec: dict = GROUND_BOARD, texel_m: float = 0.001) -> np.ndarray:
+    """The board as printed (BGR), one pixel per `texel_m`."""
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, spec["dictionary"]))
+    cols, rows = spec["squares"]
+    board = cv2.aruco.CharucoBoard((cols, rows), spec["square_m"], spec["marker_m"], d)
+    board.setLegacyPattern(bool(spec.get("legacy_pattern", False)))
+    size = (
+        int(round(cols * spec["square_m"] / texel_m)),
+        int(round(rows * spec["square_m"] / texel_m)),
+    )
+    img = board.generateImage(size, marginSize=0, borderBits=1)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+
+
+def add_ground_board(scene: Scene, spec: dict = GROUND_BOARD) -> Scene:
+    """The scene with the board lying on the ground (0.5 mm above it, so it is seen
+    rather than the ground texture); the landmark stands on its middle."""
+    texel = 0.001
+    cols, rows = spec["squares"]
+    size = (cols * spec["square_m"], rows * spec["square_m"])
+    rect = Rect(
+        "ground-board",
+        tuple(spec["origin_m"]),
+        (1.0, 0.0, 0.0),
+        (0.0, -1.0, 0.0),
+        size,
+        texel,
+        ground_board_image(spec, texel),
+        0.9,
+    )
+    return Scene(
+        list(scene.surfaces) + [rect],
+        scene.sky_top,
+        scene.sky_horizon,
+        scene.markers,
+        scene.marker_normals,
+    )

@@ -136,6 +136,12 @@ def _parse_board(value: str) -> tuple[int, int]:
 @click.option(
     "--jobs", type=click.IntRange(min=1), default=2, show_default=True, help="Render processes."
 )
+@click.option(
+    "--ground-board",
+    is_flag=True,
+    help="Lay a ChArUco board on the ground around the landmark (for build-model --board); "
+    "writes OUTDIR/board.yaml. Off by default: the default output does not change.",
+)
 def synth_cmd(
     outdir,
     seed,
@@ -155,6 +161,7 @@ def synth_cmd(
     motion_blur,
     jpeg_quality,
     jobs,
+    ground_board=False,
 ):
     """Render a synthetic data set with exact ground truth into OUTDIR.
 
@@ -202,6 +209,11 @@ def synth_cmd(
         )
     if "keyframes" in parts or "orbit" in parts:
         scene = synth.landmark_scene(seed)
+        if ground_board:
+            scene = synth.add_ground_board(scene)
+            with atomic_write(out / "board.yaml") as f:
+                f.write("# The ChArUco board on the ground (mirage synth --ground-board).\n")
+                yaml.safe_dump(synth.GROUND_BOARD, f, sort_keys=False, default_flow_style=None)
         renderer = Renderer(scene, cam)
         if "keyframes" in parts:
             _keyframes(
