@@ -451,6 +451,8 @@ def calibrate(det: Detections, board: Board, opts: CalibOptions = CalibOptions()
     std = std.ravel()
     names = ("fx", "fy", "cx", "cy", *DIST_NAMES[:n_dist])
     std_map = {n: float(s) for n, s in zip(names, std[: len(names)], strict=True)}
+    if opts.fix_aspect:  # fx = ratio * fy is not a free parameter, but it is uncertain
+        std_map["fx"] = std_map["fy"] * K[0, 0] / K[1, 1]
     tilts = np.array([_tilt_deg(r) for r in rvecs])
     calib = Calibration(
         K,

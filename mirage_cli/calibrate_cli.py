@@ -232,8 +232,9 @@ def _summary(c: Calibration, det: Detections, b: Board, output, report) -> None:
     for v, e in c.rejected:
         ui.echo(f"  rejected {v.name}: RMS {e:.2f} px > limit {c.threshold_px:.2f} px")
     ui.echo(f"RMS reprojection error: {c.rms_px:.3f} px")
-    ui.echo(f"fx {c.K[0, 0]:.2f} +- {s['fx']:.2f}   fy {c.K[1, 1]:.2f} +- {s['fy']:.2f} px")
-    ui.echo(f"cx {c.K[0, 2]:.2f} +- {s['cx']:.2f}   cy {c.K[1, 2]:.2f} +- {s['cy']:.2f} px")
+    pm = {k: f"+- {v:.2f}" if v > 0 else "(fixed)" for k, v in s.items()}
+    ui.echo(f"fx {c.K[0, 0]:.2f} {pm['fx']}   fy {c.K[1, 1]:.2f} {pm['fy']} px")
+    ui.echo(f"cx {c.K[0, 2]:.2f} {pm['cx']}   cy {c.K[1, 2]:.2f} {pm['cy']} px")
     dist = "  ".join(f"{n} {v:+.4f}" for n, v in zip(_dist_names(c), c.dist, strict=True))
     ui.echo(f"distortion: {dist}")
     ui.echo(f"wrote {output}" + (f" and {report}" if report else ""))

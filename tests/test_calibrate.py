@@ -293,3 +293,39 @@ def test_core_detection_counts():
     calib = calibrate(det, Board(9, 6, 0.025), CalibOptions(fix_aspect=True))
     assert calib.K[0, 0] == pytest.approx(calib.K[1, 1])
     assert not calib.rejected and calib.rms_px < 0.3
+
+
+def _projected_views(tilt_max_rad: float, n: int = 12, seed: int = 0) -> list[View]:
+    """Exact corner projections of a 9x6 board through a known camera."""
+    board = Board(9, 6, 0.025)
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    dist = np.array([-0.2, 0.05, 0, 0, 0])
+    rng = np.random.default_rng(seed)
+    views = []
+    for i in range(n):
+        rvec = np.r_[rng.uniform(-tilt_max_rad, tilt_max_rad, 2), rng.uniform(-0.3, 0.3)]
+        R, _ = cv2.Rodrigues(rvec)
+        t = np.r_[rng.uniform(-0.06, 0.06, 2), 0.35] - R @ np.array([0.1, 0.0625, 0])
+        uv, _ = cv2.projectPoints(board.object_points.astype(float), rvec, t, K, dist)
+        uv = uv.reshape(-1, 2) + rng.normal(0, 0.05, (54, 2))
+        views.append(View(f"v{i}", uv.astype(np.float32), np.arange(54), "sb"))
+    return views
+
+
+def test_outlier_view_rejected_and_recalibrated():
+    views = _projected_views(0.6)
+    views[4].corners = views[4].corners + np.random.default_rng(1).normal(0, 2.0, (54, 2))
+    calib = calibrate(Detections(views, (640, 480), 12), Board(9, 6, 0.025))
+    assert [v.name for v, _ in calib.rejected] == ["v4"]
+    assert len(calib.views) == 11 and calib.rms_px < 0.1
+    assert abs(calib.K[0, 0] - 500) < 1 and abs(calib.K[0, 2] - 320) < 1
+
+
+def test_weak_data_warnings():
+    calib = calibrate(Detections(_projected_views(0.08, n=6), (640, 480), 6), Board(9, 6, 0.025))
+    text = " ".join(calib.warnings)
+    assert "only 6 views" in text
+    assert "fronto-parallel" in text
+    assert "image edge" in text
+    good = calibrate(Detections(_projected_views(0.6), (640, 480), 12), Board(9, 6, 0.025))
+    assert not any("fronto" in w or "only" in w for w in good.warnings)
