@@ -40,7 +40,6 @@ _CV_FLAGS = {
 }
 _RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median of |r| for 2D N(0, s^2 I) is 1.1774 s
 _MIN_DEPTH = 1e-6  # m: points closer to (or behind) the camera plane are invalid
-_PLANAR_SWITCH = 0.25  # take the other planar minimum only if its cost is below this fraction
 _MIN_ROBUST = 6  # below this many points (<= 4 redundant equations) robust weights only cost
 
 
@@ -650,8 +649,9 @@ def _solve(
     if best is None:
         return _fail(reason, n, method)
     if planar and reference_pose is not None and best.rmse_px > 0.0:
-        best = _planar_alternative(
+        best = _other_minimum(
             best,
+            planar,
             X,
             u,
             xy,
@@ -668,8 +668,9 @@ def _solve(
     return best
 
 
-def _planar_alternative(
+def _other_minimum(
     best,
+    planar,
     X,
     u,
     xy,
@@ -683,10 +684,10 @@ def _planar_alternative(
     pixel_sigma,
     default_sigma,
 ) -> PoseEstimate:
-    """Planar targets have two nearby minima (the flip ambiguity); with few points or a small
-    target the reference can sit in the wrong basin.  Refine both IPPE solutions too and take
-    one only if it explains the pixels clearly better (cost under half), so that with
-    comparable costs the reference still decides."""
+    """Few points or a planar target leave a second nearby minimum (P3P roots, the planar
+    flip) and the reference can sit in its basin.  Refine from the global solutions too (IPPE's
+    two planar poses, or SQPnP) and switch only if that minimum is significantly better, so
+    that with comparable costs the reference still decides."""
     m = best.inliers if best.inliers.sum() >= 4 else mask
     if m.sum() < 4:
         return best
@@ -696,7 +697,7 @@ def _planar_alternative(
             np.ascontiguousarray(u[m]),
             camera.K,
             camera.dist,
-            flags=cv2.SOLVEPNP_IPPE,
+            flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP,
         )
     except cv2.error:
         return best
@@ -711,11 +712,13 @@ def _planar_alternative(
         if isinstance(res, str):
             continue
         alt = _from_refine(None, prob, res, m, len(X), pixel_sigma, default_sigma)
-        if (
-            alt.success
-            and alt.pose.angle_to(best.pose) > 0.5
-            and (alt.rmse_px**2 < _PLANAR_SWITCH * best.rmse_px**2)
-        ):
+        if not alt.success or alt.pose.angle_to(best.pose) <= 0.5:
+            continue
+        # switch only if the other minimum is significantly better: the cost drop exceeds
+        # 9 sigma^2 (sigma^2 from the alternative's residuals; noise-free: any drop)
+        k = int(m.sum())
+        c_alt, c_best = alt.rmse_px**2 * k, best.rmse_px**2 * int(best.inliers.sum())
+        if c_best - c_alt > 9.0 * c_alt / max(2 * k - 6, 1):
             best = alt
     return best
 
