@@ -346,13 +346,13 @@ def views_from_inputs(
                 f"pose file {poses_csv} has no rows for the images (e.g. {missing[0]}); its "
                 "'frame' (or 'image') column must hold the image file names"
             )
+        _need_two(views, "images with a pose")
         if missing:
             log.warning(
                 f"skipping {len(missing)} image(s) without an ok pose in {poses_csv}: "
                 + ", ".join(missing[:5])
                 + (" ..." if len(missing) > 5 else "")
             )
-        _need_two(views, "images with a pose")
         keep = [views[i] for i in select_keyframes([v.pose for v in views], settings.spacing_deg)]
         for k, v in enumerate(keep):
             img = read_image(v.path, gray=True)
@@ -362,18 +362,26 @@ def views_from_inputs(
                 progress(k + 1, len(keep))
         return keep
     poser = BoardPoser(board, camera)
-    views = []
+    views, seen, skipped = [], 0, []
     for k, p in enumerate(paths):
         img = read_image(p, gray=True)
         _check_size(img, camera, p.name)
         pose, why = poser.pose(img)
+        seen += not why.startswith("board not found")
         if pose is None:
-            log.warning(f"skipping {p.name}: {why}")
+            skipped.append(f"skipping {p.name}: {why}")
         else:
             views.append(View(p.name, pose, p, img))
         if progress:
             progress(k + 1, len(paths))
+    if seen == 0:
+        raise InputError(
+            f"the {board.type} board of the board file was not found in any of the "
+            f"{len(paths)} image(s); check its type, squares, dictionary and marker size"
+        )
     _need_two(views, "images where the board gives a reliable pose")
+    for msg in skipped:  # only once the build goes on: an error says everything itself
+        log.warning(msg)
     return [views[i] for i in select_keyframes([v.pose for v in views], settings.spacing_deg)]
 
 
@@ -449,11 +457,16 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 def keyframe_pairs(poses: list[Pose], spacing_deg: float, neighbours: int = 2) -> list:
     """Pairs of keyframes that see the landmark from directions at most `neighbours`
-    spacings apart (1- and 2-apart neighbours by default, across elevation bands too)."""
+    spacings apart (1- and 2-apart neighbours by default, across elevation bands too).
+    The spacing is the nominal one or the typical angle between neighbouring views."""
     dirs = np.array([p.center for p in poses])
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1, 1)))
-    lim = (neighbours + 0.5) * spacing_deg
+    if len(poses) < 2:
+        return []
+    # views sparser than the nominal spacing (e.g. every 30 deg) still pair with neighbours
+    nearest = np.sort(ang + np.diag(np.full(len(poses), np.inf)), axis=1)[:, 0]
+    lim = (neighbours + 0.5) * max(spacing_deg, float(np.median(nearest)))
     i, j = np.nonzero(np.triu(ang <= lim, 1))
     return list(zip(i.tolist(), j.tolist(), strict=True))
 

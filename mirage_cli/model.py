@@ -192,8 +192,10 @@ class LandmarkModel:
             "keyframes": [
                 {
                     "name": kf.name,
-                    "rvec": kf.pose.rvec.tolist(),
-                    "tvec": kf.pose.t.tolist(),
+                    "R": kf.pose.R.tolist(),  # exact doubles: a round trip changes nothing
+                    "t": kf.pose.t.tolist(),
+                    "center_m": kf.pose.center.tolist(),  # for people reading the manifest
+                    "azimuth_deg": kf.pose.azimuth_deg,
                     "features": len(kf.keypoints),
                     "linked": kf.n_linked,
                     "thumbnail_size": [int(kf.thumbnail.shape[1]), int(kf.thumbnail.shape[0])],
@@ -299,7 +301,7 @@ class LandmarkModel:
             kfs.append(
                 Keyframe(
                     info["name"],
-                    Pose.from_rvec_tvec(info["rvec"], info["tvec"]),
+                    Pose(np.array(info["R"], float), np.array(info["t"], float)),
                     a["keypoints"][s:e],
                     desc[s:e],
                     a["point_ids"][s:e],
