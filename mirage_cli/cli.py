@@ -54,6 +54,11 @@ def _register() -> None:
 
     cli.add_command(build_model_cmd)
     cli.add_command(inspect_cmd)
+    from .demo_cli import demo_cmd
+    from .report_cli import report_cmd
+
+    cli.add_command(report_cmd)
+    cli.add_command(demo_cmd)
 
 
 _register()

@@ -1,0 +1,234 @@
+"""Path-tracking report (brief, section 4.4): per-frame error table, summary, plot.
+
+Pure core: takes validated pose tables (mirage_cli.posecsv) and a desired path
+(mirage_cli.path); no terminal I/O. Everything is vectorised over frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from .errors import InputError
+from .path import Path_
+
+BASE_COLUMNS = [
+    "frame", "time_s", "status", "x_m", "y_m", "z_m",
+    "path_s_m", "cross_track_m", "height_error_m", "heading_error_deg",
+]  # fmt: skip
+TRUTH_COLUMNS = ["position_error_m", "rotation_error_deg"]
+SIGNED = ("cross_track_m", "height_error_m", "heading_error_deg", "along_track_m")
+
+
+@dataclass(frozen=True)
+class Report:
+    table: pd.DataFrame  # one row per frame, columns as written to report.csv
+    summary: dict  # plain types, ready for YAML
+    truth: pd.DataFrame | None = None  # truth rows aligned with `table` (for plots)
+
+
+def frame_key(frames: pd.Series) -> pd.Series:
+    """Join key: '12', '12.0' and ' 12' are the same frame; image names stay as they are."""
+    s = frames.astype(str).str.strip()
+    num = pd.to_numeric(s, errors="coerce")
+    integral = num.notna() & (num == np.round(num))
+    out = s.copy()
+    out[integral] = num[integral].astype("int64").astype(str)
+    return out
+
+
+def quat_angle_deg(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """Rotation angle between unit quaternions, row by row (same as Pose.angle_to)."""
+    d = np.abs(np.einsum("ij,ij->i", q1, q2))
+    return np.degrees(2.0 * np.arccos(np.clip(d, 0.0, 1.0)))
+
+
+def align_truth(poses: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
+    """Truth rows in the order of `poses` (NaN where a frame has no truth)."""
+    tk = frame_key(truth["frame"])
+    if tk.duplicated().any():
+        raise InputError(f"truth file: frame {tk[tk.duplicated()].iloc[0]} appears twice")
+    pk = frame_key(poses["frame"])
+    if not pk.isin(set(tk)).any():
+        raise InputError(
+            "truth frames do not overlap the pose frames (e.g. pose frame "
+            f"{poses['frame'].iloc[0]!r}, truth frame {truth['frame'].iloc[0]!r}); "
+            "is it the truth of this video?"
+        )
+    t = truth.assign(_key=tk.to_numpy()).set_index("_key")
+    return t.reindex(pk.to_numpy()).reset_index(drop=True)
+
+
+def make_report(poses: pd.DataFrame, path: Path_, truth: pd.DataFrame | None = None) -> Report:
+    """Per-frame errors and the summary for a pose table from `read_pose_csv`."""
+    ok = (poses["status"] == "ok").to_numpy()
+    xyz = poses[["x_m", "y_m", "z_m"]].to_numpy(float)
+    xyz[~ok] = np.nan
+    times = poses["time_s"].to_numpy(float)
+    e = path.errors(xyz, poses["yaw_deg"].to_numpy(float), times)
+    cols = {
+        "frame": poses["frame"].to_numpy(),
+        "time_s": times,
+        "status": poses["status"].to_numpy(),
+        "x_m": xyz[:, 0],
+        "y_m": xyz[:, 1],
+        "z_m": xyz[:, 2],
+        "path_s_m": e.path_s_m,
+        "cross_track_m": e.cross_track_m,
+        "height_error_m": e.height_error_m,
+        "heading_error_deg": e.heading_error_deg,
+    }
+    if e.along_track_m is not None:
+        cols["along_track_m"] = e.along_track_m
+    aligned = None
+    if truth is not None:
+        aligned = align_truth(poses, truth)
+        tok = (aligned["status"] == "ok").to_numpy()
+        txyz = aligned[["x_m", "y_m", "z_m"]].to_numpy(float)
+        tq = aligned[["qw", "qx", "qy", "qz"]].to_numpy(float)
+        pq = poses[["qw", "qx", "qy", "qz"]].to_numpy(float)
+        both = ok & tok
+        pos = np.full(len(poses), np.nan)
+        rot = np.full(len(poses), np.nan)
+        pos[both] = np.linalg.norm(xyz[both] - txyz[both], axis=1)
+        rot[both] = quat_angle_deg(pq[both], tq[both])
+        cols["position_error_m"], cols["rotation_error_deg"] = pos, rot
+    table = pd.DataFrame(cols)
+    return Report(table, summarize(table, truth is not None, aligned), aligned)
+
+
+def _stats(v: np.ndarray, signed: bool) -> dict:
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return {"n": 0, "mean": None, "rms": None, "p95": None, "max": None}
+    a = np.abs(v)
+    out = {
+        "n": int(len(v)),
+        "mean": float(np.mean(v)),
+        "rms": float(np.sqrt(np.mean(v**2))),
+        "p95": float(np.percentile(a, 95)),
+        "max": float(a.max()),
+    }
+    if not signed:
+        out["median"] = float(np.median(v))
+    return out
+
+
+def longest_run(mask: np.ndarray) -> tuple[int, int]:
+    """(length, start index) of the longest run of True in `mask` ((0, -1) when none)."""
+    m = np.r_[False, np.asarray(mask, bool), False].astype(np.int8)
+    edges = np.flatnonzero(np.diff(m))
+    starts, ends = edges[::2], edges[1::2]
+    if len(starts) == 0:
+        return 0, -1
+    k = int(np.argmax(ends - starts))
+    return int(ends[k] - starts[k]), int(starts[k])
+
+
+def summarize(table: pd.DataFrame, with_truth: bool, truth: pd.DataFrame | None = None) -> dict:
+    """Frames, tracked %, mean / RMS / p95 / max of every error (p95 and max of |error|),
+    and the longest lost stretch in frames and seconds."""
+    n = len(table)
+    ok = (table["status"] == "ok").to_numpy()
+    lost = ~ok
+    run, start = longest_run(lost)
+    t = table["time_s"].to_numpy(float)
+    dt = np.diff(t)
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    frame_dt = float(np.median(dt)) if len(dt) else float("nan")
+    seconds = run * frame_dt if run else 0.0
+    s = {
+        "frames": int(n),
+        "tracked": int(ok.sum()),
+        "tracked_pct": round(float(100.0 * ok.mean()) if n else 0.0, 3),
+        "lost": int(lost.sum()),
+        "statuses": {str(k): int(v) for k, v in table["status"].value_counts().items()},
+        "longest_lost": {
+            "frames": run,
+            "seconds": None if not np.isfinite(seconds) else round(float(seconds), 4),
+            "first_frame": str(table["frame"].iloc[start]) if run else None,
+        },
+        "errors": {},
+    }
+    names = [c for c in BASE_COLUMNS[7:] + ["along_track_m"] if c in table.columns]
+    if with_truth:
+        names += TRUTH_COLUMNS
+        if truth is not None:
+            s["truth_frames"] = int(truth["status"].notna().sum())
+    for c in names:
+        s["errors"][c] = _stats(table[c].to_numpy(float), c in SIGNED)
+    return s
+
+
+def summary_rows(summary: dict) -> list[tuple[str, dict]]:
+    """(name, stats) for printing a table."""
+    return list(summary["errors"].items())
+
+
+def plot_report(path_png, rep: Report, path: Path_) -> None:
+    """Top view (desired path, estimate, truth, lost frames) and errors over time, one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .fileio import atomic_path
+
+    tab = rep.table
+    err_cols = [c for c in tab.columns if c in SIGNED or c in TRUTH_COLUMNS]
+    t = tab["time_s"].to_numpy(float)
+    xlabel = "time (s)"
+    if not np.isfinite(t).any():
+        t, xlabel = np.arange(len(tab), dtype=float), "frame"
+    ok = (tab["status"] == "ok").to_numpy()
+
+    fig = plt.figure(figsize=(13, max(6.0, 1.9 * len(err_cols))))
+    gs = fig.add_gridspec(len(err_cols), 2, width_ratios=[1.15, 1])
+    ax = fig.add_subplot(gs[:, 0])
+    d = path.sample(361)
+    ax.plot(d[:, 0], d[:, 1], "-", color="0.5", lw=2, label="desired path")
+    if rep.truth is not None:
+        tt = rep.truth
+        ax.plot(tt["x_m"], tt["y_m"], "-", color="tab:green", lw=1, label="truth")
+        if (~ok).any():
+            ax.plot(
+                tt["x_m"].to_numpy(float)[~ok],
+                tt["y_m"].to_numpy(float)[~ok],
+                "x",
+                color="tab:red",
+                ms=4,
+                label=f"lost ({(~ok).sum()} frames, at truth)",
+            )
+    ax.plot(tab["x_m"], tab["y_m"], ".-", color="tab:blue", ms=2, lw=0.8, label="estimate")
+    if (~ok).any() and rep.truth is None:
+        # no truth: mark lost frames at the last known position
+        last = tab[["x_m", "y_m"]].ffill().to_numpy(float)[~ok]
+        ax.plot(last[:, 0], last[:, 1], "x", color="tab:red", ms=4, label="lost (last pose)")
+    ax.plot([0], [0], "k*", ms=14, label="landmark")
+    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title="top view")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    tracked = rep.summary["tracked_pct"]
+    fig.suptitle(f"mirage report: {len(tab)} frames, {tracked:.1f}% tracked")
+    for i, c in enumerate(err_cols):
+        a = fig.add_subplot(gs[i, 1])
+        a.plot(t, tab[c].to_numpy(float), "-", lw=1)
+        a.axhline(0, color="k", lw=0.5)
+        for j in np.flatnonzero(~ok):
+            a.axvspan(t[j] - 0.5 * _step(t), t[j] + 0.5 * _step(t), color="tab:red", alpha=0.08)
+        a.set_ylabel(c.replace("_", " "), fontsize=8)
+        a.grid(alpha=0.3)
+        if i == len(err_cols) - 1:
+            a.set_xlabel(xlabel)
+    fig.tight_layout()
+    with atomic_path(path_png, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+def _step(t: np.ndarray) -> float:
+    d = np.diff(t)
+    d = d[np.isfinite(d) & (d > 0)]
+    return float(np.median(d)) if len(d) else 1.0

@@ -1,0 +1,92 @@
+"""`mirage report`: thin CLI over mirage_cli.report (table, summary YAML, plot)."""
+
+from __future__ import annotations
+
+import click
+import numpy as np
+import yaml
+
+from . import ui
+from .fileio import atomic_write, check_writable
+from .path import load_path
+from .posecsv import read_pose_csv
+from .report import Report, make_report, plot_report
+
+_UNITS = {"_m": "m", "_deg": "deg"}
+
+
+def write_report(rep: Report, output, summary_path=None, plot_path=None, path=None) -> None:
+    """Write report.csv (+ summary YAML, + plot), each atomically."""
+    with atomic_write(output, newline="") as f:
+        rep.table.to_csv(f, index=False, float_format="%.6g", lineterminator="\n")
+    if summary_path:
+        with atomic_write(summary_path) as f:
+            yaml.safe_dump(rep.summary, f, sort_keys=False)
+    if plot_path:
+        plot_report(plot_path, rep, path)
+
+
+def summary_lines(s: dict) -> list[str]:
+    """The summary as a small text table."""
+    ll = s["longest_lost"]
+    sec = f", {ll['seconds']:.2f} s" if ll["seconds"] is not None and ll["frames"] else ""
+    lines = [
+        f"report: {s['frames']} frames, {s['tracked']} tracked ({s['tracked_pct']:.1f}%), "
+        f"longest lost stretch {ll['frames']} frames{sec}",
+        f"  {'error':<20}{'mean':>10}{'RMS':>10}{'p95 |e|':>10}{'max |e|':>10}",
+    ]
+    for name, st in s["errors"].items():
+        if st["n"] == 0:
+            lines.append(f"  {name:<20}{'(no frames)':>10}")
+            continue
+        vals = "".join(f"{st[k]:>10.4f}" for k in ("mean", "rms", "p95", "max"))
+        lines.append(f"  {name:<20}{vals}")
+    return lines
+
+
+@click.command("report")
+@click.argument("poses", type=click.Path(dir_okay=False))
+@click.option(
+    "--path",
+    "path",
+    required=True,
+    type=click.Path(dir_okay=False),
+    help="Desired path: YAML (type: circle | polyline) or waypoint CSV x_m,y_m,z_m[,time_s].",
+)
+@click.option(
+    "--truth",
+    type=click.Path(dir_okay=False),
+    help="Ground-truth pose CSV: adds position and rotation error (joined by frame).",
+)
+@click.option(
+    "-o",
+    "--output",
+    default="report.csv",
+    show_default=True,
+    type=click.Path(dir_okay=False),
+    help="Per-frame error CSV to write.",
+)
+@click.option("--summary", type=click.Path(dir_okay=False), help="Also write the summary YAML.")
+@click.option("--plot", type=click.Path(dir_okay=False), help="Also write a PNG plot.")
+def report_cmd(poses, path, truth, output, summary, plot):
+    """Path-following errors of a pose CSV against the desired path (and the truth).
+
+    \b
+    Example:
+      mirage report poses.csv --path desired_path.yaml --truth truth.csv \\
+          -o report.csv --summary summary.yaml --plot report.png
+    """
+    for out in (output, summary, plot):
+        if out:
+            check_writable(out)
+    desired = load_path(path)
+    table = read_pose_csv(poses)
+    truth_df = read_pose_csv(truth) if truth else None
+    rep = make_report(table, desired, truth_df)
+    write_report(rep, output, summary, plot, desired)
+    for line in summary_lines(rep.summary):
+        ui.echo(line)
+    wrote = [str(p) for p in (output, summary, plot) if p]
+    ui.echo(f"wrote {', '.join(wrote)}")
+    if not np.isfinite(rep.table["cross_track_m"].to_numpy(float)).any():
+        ui.log.warning("no frame was tracked: every error is empty")
