@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import InputError
-from .path import Path_
+from .path import CirclePath, Path_
 
 BASE_COLUMNS = [
     "frame", "time_s", "status", "x_m", "y_m", "z_m",
@@ -106,14 +106,19 @@ def _stats(v: np.ndarray, signed: bool) -> dict:
     a = np.abs(v)
     out = {
         "n": int(len(v)),
-        "mean": float(np.mean(v)),
-        "rms": float(np.sqrt(np.mean(v**2))),
-        "p95": float(np.percentile(a, 95)),
-        "max": float(a.max()),
+        "mean": _r(np.mean(v)),
+        "rms": _r(np.sqrt(np.mean(v**2))),
+        "p95": _r(np.percentile(a, 95)),
+        "max": _r(a.max()),
     }
     if not signed:
-        out["median"] = float(np.median(v))
+        out["median"] = _r(np.median(v))
     return out
+
+
+def _r(v) -> float:
+    """Seven significant digits: readable YAML, far below any error we measure."""
+    return float(f"{float(v):.7g}")
 
 
 def longest_run(mask: np.ndarray) -> tuple[int, int]:
@@ -183,12 +188,19 @@ def plot_report(path_png, rep: Report, path: Path_) -> None:
     if not np.isfinite(t).any():
         t, xlabel = np.arange(len(tab), dtype=float), "frame"
     ok = (tab["status"] == "ok").to_numpy()
+    edges = np.flatnonzero(np.diff(np.r_[0, (~ok).astype(np.int8), 0]))
+    lost_runs = list(zip(edges[::2], edges[1::2], strict=True))
+    step = _step(t)
 
     fig = plt.figure(figsize=(13, max(6.0, 1.9 * len(err_cols))))
     gs = fig.add_gridspec(len(err_cols), 2, width_ratios=[1.15, 1])
     ax = fig.add_subplot(gs[:, 0])
     d = path.sample(361)
     ax.plot(d[:, 0], d[:, 1], "-", color="0.5", lw=2, label="desired path")
+    k = max(1, len(d) // 36)
+    if isinstance(path, CirclePath) and path.direction == "cw":
+        d = d[::-1]
+    ax.annotate("", d[k, :2], d[0, :2], arrowprops={"arrowstyle": "->", "color": "0.3", "lw": 2})
     if rep.truth is not None:
         tt = rep.truth
         ax.plot(tt["x_m"], tt["y_m"], "-", color="tab:green", lw=1, label="truth")
@@ -209,15 +221,15 @@ def plot_report(path_png, rep: Report, path: Path_) -> None:
     ax.plot([0], [0], "k*", ms=14, label="landmark")
     ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title="top view")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="best")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.09), ncol=3)
     tracked = rep.summary["tracked_pct"]
     fig.suptitle(f"mirage report: {len(tab)} frames, {tracked:.1f}% tracked")
     for i, c in enumerate(err_cols):
         a = fig.add_subplot(gs[i, 1])
         a.plot(t, tab[c].to_numpy(float), "-", lw=1)
         a.axhline(0, color="k", lw=0.5)
-        for j in np.flatnonzero(~ok):
-            a.axvspan(t[j] - 0.5 * _step(t), t[j] + 0.5 * _step(t), color="tab:red", alpha=0.08)
+        for j0, j1 in lost_runs:
+            a.axvspan(t[j0] - 0.5 * step, t[j1 - 1] + 0.5 * step, color="tab:red", alpha=0.12)
         a.set_ylabel(c.replace("_", " "), fontsize=8)
         a.grid(alpha=0.3)
         if i == len(err_cols) - 1:
