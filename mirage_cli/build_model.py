@@ -16,7 +16,9 @@ Pure core, no terminal I/O (warnings go to the `mirage` logger, the CLI prints t
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -105,7 +107,7 @@ class BuildSettings:
     min_angle_deg: float = 2.5
     epipolar_px: float = 2.0
     neighbours: int = 2  # match each keyframe with this many keyframes on each side
-    roi: ROI = field(default_factory=ROI)
+    roi: ROI = field(default_factory=lambda: ROI("auto"))
     max_video_frames: int = 400  # frames examined in a video (evenly spaced)
 
 
@@ -567,15 +569,20 @@ def build_model(
 ) -> BuildResult:
     """Keyframes, features and 3D points from views with known poses (images loaded)."""
     _need_two(views, "views")
-    det = make_detector(settings.detector)
     kps, descs, norm = [], [], []
-    for k, v in enumerate(views):
-        kp, d = detect(v.image, det)
-        kps.append(kp)
-        descs.append(d)
-        norm.append(camera.undistort_points(kp))
-        if progress:
-            progress("features", k + 1, len(views))
+    workers = max(1, min(4, os.cpu_count() or 1))
+    dets = [make_detector(settings.detector) for _ in range(workers)]
+
+    def job(k):  # OpenCV releases the GIL: threads use every core, no pickling
+        return detect(views[k].image, dets[k % workers])
+
+    with ThreadPoolExecutor(workers) as pool:
+        for k, (kp, d) in enumerate(pool.map(job, range(len(views)))):
+            kps.append(kp)
+            descs.append(d)
+            norm.append(camera.undistort_points(kp))
+            if progress:
+                progress("features", k + 1, len(views))
     poses = [v.pose for v in views]
     pairs = keyframe_pairs(poses, settings.spacing_deg, settings.neighbours)
     f = max(camera.fx, camera.fy)
