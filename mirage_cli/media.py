@@ -8,6 +8,7 @@ error instead of OpenCV's silent None, and samples video frames.
 from __future__ import annotations
 
 import glob
+import os
 import re
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -17,6 +18,10 @@ import cv2
 import numpy as np
 
 from .errors import InputError
+
+# FFmpeg writes its own complaints ("moov atom not found") straight to stderr, next to
+# our one-line error; silence them (read at the first video open; env can override).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
 
 IMAGE_EXTS = frozenset(
     {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm", ".jp2"}

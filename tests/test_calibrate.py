@@ -329,3 +329,10 @@ def test_weak_data_warnings():
     assert "image edge" in text
     good = calibrate(Detections(_projected_views(0.6), (640, 480), 12), Board(9, 6, 0.025))
     assert not any("fronto" in w or "only" in w for w in good.warnings)
+
+
+def test_corrupt_video(tmp_path):
+    junk = tmp_path / "calib.mp4"
+    junk.write_bytes(b"not a video" * 200)
+    r = mirage("calibrate", junk, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml")
+    assert_one_line_error(r, "cannot open video")  # no FFmpeg noise on stderr
