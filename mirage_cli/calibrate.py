@@ -3,11 +3,12 @@
 Pure core: no terminal output. Problems with the data are returned as warning strings
 (the CLI prints them); failures the user can fix raise InputError.
 
-Corner accuracy matters more than anything else here. findChessboardCornersSB finds
-boards robustly (blur, lighting, distortion) but its corners are ~0.1 px noisier than a
-saddle-point refinement, so every detection is refined with cornerSubPix. The refinement
-window is sized from the corner spacing in that view: a fixed 23x23 window (OpenCV's
-sample) reaches across squares on small boards and drags corners by several pixels.
+Corner accuracy matters more than anything else here. Every detection (classic
+findChessboardCorners first, findChessboardCornersSB as fallback for hard views) is
+checked for plausibility and refined with cornerSubPix, with a window sized from the
+corner spacing in that view: a fixed 23x23 window (OpenCV's sample) reaches across
+squares on small boards and drags corners by several pixels; SB's own corners are
+~0.1 px noisier than the refinement on clean views.
 """
 
 from __future__ import annotations
