@@ -135,7 +135,10 @@ class PolylinePath:
         s = self.cum_s[seg] + u * np.linalg.norm((B - A)[seg], axis=1)
         dirs = d2[seg] / np.sqrt(np.where(usable[seg], L2[seg], 1.0))[:, None]
         v = P[:, :2] - near[:, :2]
-        cross = dirs[:, 0] * v[:, 1] - dirs[:, 1] * v[:, 0]  # > 0: left of the direction
+        # distance to the path, signed by side (> 0: left); at a vertex or past an end the
+        # offset is not perpendicular to the segment, and the distance is still what counts
+        side = dirs[:, 0] * v[:, 1] - dirs[:, 1] * v[:, 0]
+        cross = np.where(side < 0, -1.0, 1.0) * np.hypot(v[:, 0], v[:, 1])
         tangent = np.degrees(np.arctan2(dirs[:, 1], dirs[:, 0]))
         desired = _look_heading(P, self.look_at_m, tangent)
         bad = np.isnan(P).any(axis=1)

@@ -256,3 +256,20 @@ def test_cli_waypoint_csv_bad(tmp_path, mirage):
     w.write_text("x_m,y_m\n0,0\n1,1\n")
     proc = mirage("report", f, "--path", w, "-o", tmp_path / "r.csv")
     assert_one_line_error(proc, 2, "missing waypoint column(s) z_m")
+
+
+def test_polyline_matches_brute_force():
+    """Vectorised nearest point = dense sampling of the path, on random zigzags."""
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        pts = np.column_stack([np.cumsum(rng.uniform(0.2, 1.0, 6)), rng.normal(0, 1, 6),
+                               rng.uniform(0, 1, 6)])  # fmt: skip
+        p = path_from_dict({"type": "polyline", "points_m": pts.tolist()})
+        P = np.column_stack([rng.uniform(-1, 6, 200), rng.uniform(-3, 3, 200), np.zeros(200)])
+        e = p.errors(P, np.zeros(200))
+        u = np.linspace(0, 1, 2001)[:, None]
+        dense = np.concatenate([a + u * (b - a) for a, b in zip(pts[:-1], pts[1:], strict=True)])[
+            :, :2
+        ]
+        dmin = np.sqrt(((P[:, None, :2] - dense[None]) ** 2).sum(-1)).min(axis=1)
+        assert np.abs(np.abs(e.cross_track_m) - dmin).max() < 2e-3
