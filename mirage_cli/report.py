@@ -162,9 +162,24 @@ def summarize(table: pd.DataFrame, with_truth: bool, truth: pd.DataFrame | None 
         names += TRUTH_COLUMNS
         if truth is not None:
             s["truth_frames"] = int(truth["status"].notna().sum())
+            if "landmark_visible" in truth.columns:
+                s["visibility"] = _visibility(ok, truth["landmark_visible"])
     for c in names:
         s["errors"][c] = _stats(table[c].to_numpy(float), c in SIGNED)
     return s
+
+
+def _visibility(ok: np.ndarray, visible: pd.Series) -> dict:
+    """Tracked share where the landmark is in view (truth visibility >= 0.5), and 'ok'
+    frames where it is essentially out of view (<= 0.05): a wrong pose is worse than none."""
+    v = pd.to_numeric(visible, errors="coerce").to_numpy(float)
+    seen, hidden = v >= 0.5, v <= 0.05
+    return {
+        "frames_in_view": int(seen.sum()),
+        "tracked_in_view_pct": round(float(100.0 * ok[seen].mean()), 3) if seen.any() else None,
+        "frames_out_of_view": int(hidden.sum()),
+        "ok_out_of_view": int((ok & hidden).sum()),
+    }
 
 
 def summary_rows(summary: dict) -> list[tuple[str, dict]]:

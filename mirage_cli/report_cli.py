@@ -35,6 +35,14 @@ def summary_lines(s: dict) -> list[str]:
         f"longest lost stretch {ll['frames']} frames{sec}",
         f"  {'error':<20}{'mean':>10}{'RMS':>10}{'p95 |e|':>10}{'max |e|':>10}",
     ]
+    vis = s.get("visibility")
+    if vis and vis["tracked_in_view_pct"] is not None:
+        lines.insert(
+            1,
+            f"  landmark in view in {vis['frames_in_view']} frames: "
+            f"{vis['tracked_in_view_pct']:.1f}% tracked; out of view in "
+            f"{vis['frames_out_of_view']} frames: {vis['ok_out_of_view']} ok (should be 0)",
+        )
     for name, st in s["errors"].items():
         if st["n"] == 0:
             lines.append(f"  {name:<20}{'(no frames)':>10}")
