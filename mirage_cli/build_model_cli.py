@@ -133,8 +133,10 @@ def build_model_cmd(
     Each view's pose comes from a pose CSV (--poses) or a fiducial board in view
     (--board). Example:
 
-      mirage build-model sample_data/keyframes --poses sample_data/keyframes/poses.csv
-      --camera sample_data/camera_truth.yaml -o landmark.mirage
+    \b
+      mirage build-model sample_data/keyframes \\
+        --poses sample_data/keyframes/poses.csv \\
+        --camera sample_data/camera_truth.yaml -o landmark.mirage
     """
     if (poses_path is None) == (board_path is None):
         raise InputError("give exactly one of --poses FILE or --board FILE")
