@@ -273,3 +273,17 @@ def test_polyline_matches_brute_force():
         ]
         dmin = np.sqrt(((P[:, None, :2] - dense[None]) ** 2).sum(-1)).min(axis=1)
         assert np.abs(np.abs(e.cross_track_m) - dmin).max() < 2e-3
+
+
+def test_visibility_summary(tmp_path):
+    poses = circle_poses(1.6, n=20)
+    status = ["ok"] * 20
+    status[5:10] = ["lost"] * 5
+    f = write(tmp_path, "p.csv", poses, status=status)
+    ft = write(tmp_path, "t.csv", poses)
+    t = read_pose_csv(ft)
+    t["landmark_visible"] = ["1.0"] * 4 + ["0.0"] * 7 + ["0.8"] * 9  # frames 4..10 hidden
+    rep = make_report(read_pose_csv(f), load_path(circle_yaml(tmp_path)), t)
+    v = rep.summary["visibility"]
+    assert v == {"frames_in_view": 13, "tracked_in_view_pct": 100.0,
+                 "frames_out_of_view": 7, "ok_out_of_view": 2}  # fmt: skip
