@@ -59,6 +59,9 @@ def _register() -> None:
 
     cli.add_command(report_cmd)
     cli.add_command(demo_cmd)
+    from .track_cli import track_cmd
+
+    cli.add_command(track_cmd)
 
 
 _register()

@@ -166,6 +166,13 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
             angles[i, 3] = pose.azimuth_deg
         df[["roll_deg", "pitch_deg", "yaw_deg", "azimuth_deg"]] = angles
     df["frame"] = df["frame"].str.strip()
+    known = set(POSE_COLUMNS) | {"status"}
+    for col in df.columns:  # extra diagnostic columns: numeric when every cell is
+        if col not in known and not pd.api.types.is_numeric_dtype(df[col]):
+            raw = df[col].str.strip()
+            num = pd.to_numeric(raw, errors="coerce")
+            if not (num.isna() & (raw != "")).any():
+                df[col] = num
     return df
 
 

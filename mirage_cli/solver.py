@@ -146,6 +146,16 @@ class _Problem:
         r2 = e2[:n] + e2[n:]
         return e, e2, r2, iz, zmin
 
+    def point_r2(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Per-point squared pixel error; inf for points behind the camera (outliers may be)."""
+        Xc = R @ self.XT + t[:, None]
+        front = Xc[2] > _MIN_DEPTH
+        p = Xc[:2] / np.where(front, Xc[2], 1.0)
+        e = self.obs.reshape(2, self.n) - p
+        r2 = (e[0] * self.fx) ** 2 + (e[1] * self.fy) ** 2
+        r2[~front] = np.inf
+        return r2
+
     def normal_equations(self, iz: np.ndarray, wt: np.ndarray, e: np.ndarray):
         """H = J^T W J and g = J^T W e for the left perturbation (w, v), pixel units.
 
@@ -630,7 +640,7 @@ def _solve(
             continue
         if ransac:
             # re-classify every point by its reprojection at the refined pose; refit if changed
-            r2all = prob.residuals(res["R"], res["t"])[2]
+            r2all = prob.point_r2(res["R"], res["t"])
             m2 = r2all <= ransac_threshold_px**2
             if m2.sum() >= 3 and not np.array_equal(m2, mask):
                 p1 = Pose(res["R"], res["t"])
@@ -732,6 +742,19 @@ def _from_refine(prob_all, prob_used, res, mask, n, pixel_sigma, default_sigma) 
 
 def _score_fixed(prob, pose, mask, method, thr, pixel_sigma, default_sigma, ransac):
     """Statistics of a pose found by another solver: residuals, inliers and covariance."""
+    if ransac:  # outliers may lie anywhere, even behind the camera: score the inliers only
+        inl = (prob.point_r2(pose.R, pose.t) <= thr**2) & mask
+        if inl.sum() < 3:
+            return _fail(f"{method}: fewer than 3 inliers at its solution", prob.n, method)
+        if not inl.all():
+            idx = np.flatnonzero(inl)
+            sub = _Problem(prob.X[idx], prob.obs.reshape(2, -1).T[idx], prob.fx, prob.fy)
+            est = _score_fixed(
+                sub, pose, np.ones(len(idx), bool), method, thr, pixel_sigma, default_sigma, False
+            )
+            if est.success:
+                est.inliers = inl
+            return est
     e, e2, r2, iz, zmin = prob.residuals(pose.R, pose.t)
     if e is None:
         return _fail(f"{method}: points behind the camera at its solution", prob.n, method)

@@ -307,7 +307,8 @@ def _orbit(out: Path, renderer, duration, fps, seed, noise, blur, jobs):
 
 
 def _look_away(duration: float) -> tuple[float, float]:
-    """The look-away stretch: 2.2 s starting at 47% of the video (scaled for short videos)."""
-    length = min(2.2, 0.25 * duration)
-    start = 0.47 * duration
+    """The look-away stretch: 2.2 s starting at 78% of the video (scaled for short videos),
+    where the path's last part repeats its start, so every azimuth is seen in view."""
+    length = min(2.2, 0.11 * duration)
+    start = 0.78 * duration
     return start, start + length

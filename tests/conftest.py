@@ -32,3 +32,22 @@ def assert_one_line_error(proc, code=2, contains=None):
     assert "Traceback" not in proc.stderr
     if contains:
         assert contains.lower() in lines[0].lower(), lines[0]
+
+
+@pytest.fixture(scope="session")
+def sample_model(tmp_path_factory):
+    """The sample landmark model, built once per test session with the CLI."""
+    path = tmp_path_factory.mktemp("model") / "landmark.mirage"
+    p = run_mirage(
+        "-q",
+        "build-model",
+        SAMPLE / "keyframes",
+        "--camera",
+        SAMPLE / "camera_truth.yaml",
+        "--poses",
+        SAMPLE / "keyframes" / "poses.csv",
+        "-o",
+        path,
+    )
+    assert p.returncode == 0, p.stderr
+    return path

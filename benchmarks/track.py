@@ -1,0 +1,228 @@
+"""Tracking benchmark on the sample orbit: accuracy against truth, lost frames, speed.
+
+Runs `mirage track`'s pipeline with every --method, plus a plain OpenCV user's pipeline
+(SIFT + FLANN ratio matching against all model points + solvePnPRansac + LM refinement,
+no temporal tracking), on the same decoded video in the same process, and the decode-only
+frame rate of the video as the physical ceiling.
+
+    python benchmarks/track.py                # all methods
+    python benchmarks/track.py --methods mirage-s --repeats 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
+from mirage_cli.camera import Camera  # noqa: E402
+from mirage_cli.features import detect, make_detector  # noqa: E402
+from mirage_cli.model import LandmarkModel  # noqa: E402
+from mirage_cli.pose import Pose  # noqa: E402
+from mirage_cli.posecsv import read_pose_csv, row_pose  # noqa: E402
+from mirage_cli.solver import METHODS  # noqa: E402
+from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
+from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
+
+SAMPLE = ROOT / "sample_data"
+IN_VIEW = 0.3  # share of the landmark inside the image for a frame to count as "in view"
+
+
+def load_frames(video: Path) -> tuple[list[np.ndarray], float]:
+    t0 = time.perf_counter()
+    cap = cv2.VideoCapture(str(video))
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(f)
+    return frames, len(frames) / (time.perf_counter() - t0)
+
+
+def get_model(camera: Camera, path: Path | None) -> LandmarkModel:
+    if path is not None and path.is_file():
+        return LandmarkModel.load(path)
+    views = views_from_inputs(
+        [str(SAMPLE / "keyframes")],
+        camera,
+        BuildSettings(),
+        poses_csv=SAMPLE / "keyframes" / "poses.csv",
+    )
+    return build_model(views, camera, BuildSettings()).model
+
+
+def run_mirage(frames, model, camera, method):
+    tr = Tracker(model, camera, TrackSettings(method=method))
+    poses = []
+    t0 = time.perf_counter()
+    for f in frames:
+        res = tr.process(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
+        poses.append(res.pose if res.status == "ok" else None)
+    return poses, time.perf_counter() - t0
+
+
+def run_plain_opencv(frames, model, camera):
+    """What an OpenCV user writes first: every frame matched against every model point."""
+    det = make_detector(model.detector)
+    X, D = [], []
+    for kf in model.keyframes:
+        _, d, pid = kf.linked()
+        X.append(model.points[pid])
+        D.append(d)
+    X, D = np.concatenate(X), np.concatenate(D).astype(np.float32)
+    flann = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
+    flann.add([D])
+    flann.train()
+    poses = []
+    t0 = time.perf_counter()
+    cv2.setRNGSeed(0)
+    for f in frames:
+        kp, d = detect(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY), det)
+        pose = None
+        if d is not None and len(kp) >= 6:
+            knn = flann.knnMatch(d.astype(np.float32), k=2)
+            good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+            if len(good) >= 6:
+                obj = X[[m.trainIdx for m in good]]
+                img = kp[[m.queryIdx for m in good]].astype(np.float64)
+                try:
+                    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+                        obj,
+                        img,
+                        camera.K,
+                        camera.dist,
+                        reprojectionError=3.0,
+                        iterationsCount=500,
+                        confidence=0.999,
+                        flags=cv2.SOLVEPNP_EPNP,
+                    )
+                    if ok and inl is not None and len(inl) >= 15:
+                        i = inl.ravel()
+                        rvec, tvec = cv2.solvePnPRefineLM(
+                            obj[i], img[i], camera.K, camera.dist, rvec, tvec
+                        )
+                        pose = Pose.from_rvec_tvec(rvec, tvec)
+                except cv2.error:
+                    pose = None
+        poses.append(pose)
+    return poses, time.perf_counter() - t0
+
+
+def score(name, poses, truth, seconds, n_frames):
+    vis = truth["landmark_visible"].to_numpy()
+    pos_err, rot_err, rng = [], [], []
+    wrong = ok_out = 0
+    ok = np.array([p is not None for p in poses])
+    for i, p in enumerate(poses):
+        if p is None:
+            continue
+        t = row_pose(truth.iloc[i])
+        if vis[i] == 0:
+            ok_out += 1
+        e, r = p.distance_to(t), p.angle_to(t)
+        d = np.linalg.norm(t.center - LANDMARK_TARGET)
+        if e > 0.10 or r > 5.0:
+            wrong += 1
+        pos_err.append(e)
+        rot_err.append(r)
+        rng.append(e / d * 100)
+    inview = vis >= IN_VIEW
+    pe, re, pr = (np.array(a) if a else np.array([np.nan]) for a in (pos_err, rot_err, rng))
+    return {
+        "pipeline": name,
+        "tracked_in_view_%": 100 * ok[inview].mean(),
+        "ok_out_of_view": ok_out,
+        "pos_med_m": np.median(pe),
+        "pos_p95_m": np.percentile(pe, 95),
+        "pos_med_%range": np.median(pr),
+        "rot_med_deg": np.median(re),
+        "rot_p95_deg": np.percentile(re, 95),
+        "wrong_poses": wrong,
+        "fps": n_frames / seconds,
+    }
+
+
+def reacquisition(poses, truth) -> int:
+    """Frames from the landmark's return into view (>= IN_VIEW) to the first ok pose."""
+    vis = truth["landmark_visible"].to_numpy()
+    out = np.flatnonzero(vis == 0)
+    if not len(out):
+        return 0
+    back = out[-1] + 1
+    while back < len(vis) and vis[back] < IN_VIEW:
+        back += 1
+    for k in range(back, len(poses)):
+        if poses[k] is not None:
+            return k - back
+    return -1
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--model", type=Path, help="existing model (default: build from sample)")
+    ap.add_argument("--repeats", type=int, default=1, help="runs per pipeline (median fps)")
+    ap.add_argument("--no-plain", action="store_true", help="skip the plain OpenCV pipeline")
+    args = ap.parse_args()
+    cv2.setNumThreads(2)
+    camera = Camera.load(SAMPLE / "camera_truth.yaml")
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    decode = []
+    for _ in range(max(1, args.repeats)):
+        frames, dfps = load_frames(SAMPLE / "orbit.mp4")
+        decode.append(dfps)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory():
+        model = get_model(camera, args.model)
+    build_s = time.perf_counter() - t0
+    print(
+        f"orbit: {len(frames)} frames, {int((truth['landmark_visible'] == 0).sum())} out of "
+        f"view; model: {len(model.keyframes)} keyframes, {len(model.points)} points "
+        f"({build_s:.1f} s)\n"
+    )
+    rows, reacq = [], {}
+    pipelines = [
+        (m, lambda m=m: run_mirage(frames, model, camera, m)) for m in args.methods.split(",")
+    ]
+    if not args.no_plain:
+        pipelines.append(
+            ("plain OpenCV (SIFT+FLANN+RANSAC+LM)", lambda: run_plain_opencv(frames, model, camera))
+        )
+    for name, fn in pipelines:
+        times = []
+        for _ in range(max(1, args.repeats)):
+            poses, sec = fn()
+            times.append(sec)
+        rows.append(score(name, poses, truth, float(np.median(times)), len(frames)))
+        reacq[name] = reacquisition(poses, truth)
+    cols = list(rows[0].keys())
+    print("| " + " | ".join(cols) + " | reacquire_frames |")
+    print("|" + "---|" * (len(cols) + 1))
+    for r in rows:
+        cells = [r["pipeline"]] + [
+            f"{r[c]:.4f}"
+            if isinstance(r[c], float) and c.startswith(("pos", "rot"))
+            else f"{r[c]:.1f}"
+            if isinstance(r[c], float)
+            else str(r[c])
+            for c in cols[1:]
+        ]
+        print("| " + " | ".join(cells) + f" | {reacq[r['pipeline']]} |")
+    print(
+        f"\ndecode-only: {np.median(decode):.0f} frames/s (median of {len(decode)}); "
+        "fps columns exclude decoding (frames held in memory)"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,158 @@
+"""`mirage track` on the sample orbit: accuracy against truth, honest lost frames, errors."""
+
+import shutil
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+from conftest import SAMPLE, assert_one_line_error, run_mirage
+
+from mirage_cli.camera import Camera
+from mirage_cli.posecsv import POSE_COLUMNS, read_pose_csv, row_pose
+from mirage_cli.synth import LANDMARK_TARGET
+
+IN_VIEW = 0.3  # share of the landmark inside the image
+
+
+@pytest.fixture(scope="module")
+def orbit_run(sample_model, tmp_path_factory):
+    out = tmp_path_factory.mktemp("track")
+    csv = out / "poses.csv"
+    p = run_mirage(
+        "track",
+        SAMPLE / "orbit.mp4",
+        "--model",
+        sample_model,
+        "--camera",
+        SAMPLE / "camera_truth.yaml",
+        "-o",
+        csv,
+        "--tum",
+        out / "traj.txt",
+    )
+    assert p.returncode == 0, p.stderr
+    return csv, out, p
+
+
+def errors(est, truth):
+    ok = est["status"] == "ok"
+    pos, rot, rel = [], [], []
+    for i in np.flatnonzero(ok):
+        e, t = row_pose(est.iloc[i]), row_pose(truth.iloc[i])
+        pos.append(e.distance_to(t))
+        rot.append(e.angle_to(t))
+        rel.append(pos[-1] / np.linalg.norm(t.center - LANDMARK_TARGET))
+    return np.array(pos), np.array(rot), np.array(rel)
+
+
+def test_orbit_accuracy_and_lost_frames(orbit_run):
+    csv, _, proc = orbit_run
+    est, truth = read_pose_csv(csv), read_pose_csv(SAMPLE / "orbit_truth.csv")
+    assert len(est) == len(truth)
+    assert list(pd.read_csv(csv).columns[: len(POSE_COLUMNS)]) == POSE_COLUMNS
+    vis = truth["landmark_visible"].to_numpy()
+    ok = (est["status"] == "ok").to_numpy()
+    assert ok[vis >= IN_VIEW].mean() >= 0.99
+    assert not ok[vis == 0].any()  # every frame without the landmark is lost
+    pos, rot, rel = errors(est, truth)
+    assert np.sum((pos > 0.10) | (rot > 5.0)) == 0  # no wrong poses
+    assert np.median(rel) <= 0.003
+    assert np.median(rot) <= 0.2
+    # re-acquired within 5 frames after the landmark is back in view
+    back = np.flatnonzero(vis == 0)[-1] + 1
+    while vis[back] < IN_VIEW:
+        back += 1
+    assert np.flatnonzero(ok[back:])[0] <= 5
+    # the whole circle is covered
+    az = est.loc[ok, "azimuth_deg"].to_numpy()
+    assert len(np.unique(np.floor((az + 180) / 10))) == 36
+    # diagnostics are present and sane
+    assert (est.loc[ok, "inliers"] >= 15).all()
+    assert (est.loc[ok, "sigma_pos_m"] > 0).all()
+    assert "tracked" not in proc.stderr.lower() or proc.returncode == 0
+
+
+def test_tum_trajectory(orbit_run):
+    csv, out, _ = orbit_run
+    est = read_pose_csv(csv)
+    tum = np.loadtxt(out / "traj.txt")
+    ok = est[est["status"] == "ok"]
+    assert tum.shape == (len(ok), 8)
+    assert np.allclose(tum[:, 1:4], ok[["x_m", "y_m", "z_m"]].to_numpy(), atol=1e-6)
+    assert np.allclose(tum[:, 7], ok["qw"].to_numpy(), atol=1e-6)  # qw last in TUM
+    assert np.allclose(tum[:, 0], ok["time_s"].to_numpy(), atol=1e-3)
+
+
+def test_deterministic_with_overlay(sample_model, tmp_path, mirage):
+    args = [SAMPLE / "orbit.mp4", "--model", sample_model, "--end", "60"]
+    assert (
+        mirage(
+            "track", *args, "-o", tmp_path / "a.csv", "--overlay", tmp_path / "ov.mp4"
+        ).returncode
+        == 0
+    )
+    assert mirage("track", *args, "-o", tmp_path / "b.csv").returncode == 0
+    a = pd.read_csv(tmp_path / "a.csv").drop(columns="ms")
+    b = pd.read_csv(tmp_path / "b.csv").drop(columns="ms")
+    assert len(a) == 60 and a.equals(b)
+    cap = cv2.VideoCapture(str(tmp_path / "ov.mp4"))
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == 60
+
+
+def test_image_folder_input(sample_model, tmp_path, mirage):
+    p = mirage("track", SAMPLE / "keyframes", "--model", sample_model, "-o", tmp_path / "k.csv")
+    assert p.returncode == 0, p.stderr
+    est, truth = read_pose_csv(tmp_path / "k.csv"), read_pose_csv(SAMPLE / "keyframes/poses.csv")
+    assert (est["status"] == "ok").all()
+    assert est["frame"].tolist() == truth["frame"].tolist()
+    pos, rot, _ = errors(est, truth)
+    assert pos.max() < 0.02 and rot.max() < 0.5
+
+
+def test_bad_input(sample_model, tmp_path, mirage):
+    m = ["--model", sample_model]
+    assert_one_line_error(mirage("track", tmp_path / "none.mp4", *m), 2, "not found")
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"this is not a video" * 100)
+    assert_one_line_error(mirage("track", junk, *m, "-o", tmp_path / "o.csv"), 2, "video")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_one_line_error(mirage("track", empty, *m), 2, "no images")
+    assert_one_line_error(
+        mirage("track", SAMPLE / "orbit.mp4", *m, "-o", tmp_path / "nodir" / "o.csv"),
+        2,
+        "does not exist",
+    )
+    # a video of another aspect ratio than the camera
+    square = tmp_path / "square.mp4"
+    w = cv2.VideoWriter(str(square), cv2.VideoWriter_fourcc(*"mp4v"), 30, (320, 320))
+    for _ in range(5):
+        w.write(np.zeros((320, 320, 3), np.uint8))
+    w.release()
+    assert_one_line_error(mirage("track", square, *m), 2, "320x320")
+    # a model built with another camera
+    cam = Camera.load(SAMPLE / "camera_truth.yaml")
+    cam.K[0, 0] *= 1.1
+    cam.save(tmp_path / "other.yaml")
+    assert_one_line_error(
+        mirage("track", SAMPLE / "orbit.mp4", *m, "--camera", tmp_path / "other.yaml"),
+        2,
+        "another camera",
+    )
+    # a truncated model
+    bad = tmp_path / "bad.mirage"
+    bad.write_bytes(sample_model.read_bytes()[:5000])
+    assert_one_line_error(mirage("track", SAMPLE / "orbit.mp4", "--model", bad), 2)
+
+
+def test_corrupt_frames_are_reported_and_rest_tracked(sample_model, tmp_path, mirage):
+    """Unreadable images in a folder come out as decode_error; the others are tracked."""
+    folder = tmp_path / "frames"
+    shutil.copytree(SAMPLE / "keyframes", folder)
+    (folder / "kf_005.jpg").write_bytes(b"\xff\xd8 garbage")
+    p = mirage("track", folder, "--model", sample_model, "-o", tmp_path / "o.csv")
+    assert p.returncode == 0, p.stderr
+    est = pd.read_csv(tmp_path / "o.csv")
+    assert est.loc[est["frame"] == "kf_005.jpg", "status"].item() == "decode_error"
+    assert (est["status"] == "ok").sum() == 35
