@@ -218,7 +218,7 @@ def plot_report(path_png, rep: Report, path: Path_) -> None:
     ax.annotate("", d[k, :2], d[0, :2], arrowprops={"arrowstyle": "->", "color": "0.3", "lw": 2})
     if rep.truth is not None:
         tt = rep.truth
-        ax.plot(tt["x_m"], tt["y_m"], "-", color="tab:green", lw=1, label="truth")
+        ax.plot(tt["x_m"], tt["y_m"], "-", color="tab:green", lw=3, alpha=0.5, label="truth")
         if (~ok).any():
             ax.plot(
                 tt["x_m"].to_numpy(float)[~ok],
