@@ -283,7 +283,12 @@ class LandmarkModel:
             raise InputError(f"model {p} is corrupt or truncated ({e}); {hint}") from None
         except (KeyError, TypeError) as e:
             raise InputError(f"model {p} has an invalid manifest ({e}); {hint}") from None
-        return cls._from_parts(manifest, arrays)
+        try:
+            return cls._from_parts(manifest, arrays)
+        except (KeyError, TypeError, ValueError, IndexError) as e:
+            raise InputError(
+                f"model {p} is incompatible ({type(e).__name__}: {e}); {hint}"
+            ) from None
 
     @classmethod
     def _from_parts(cls, manifest: dict, a: dict) -> LandmarkModel:
