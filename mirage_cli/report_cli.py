@@ -18,7 +18,7 @@ _UNITS = {"_m": "m", "_deg": "deg"}
 def write_report(rep: Report, output, summary_path=None, plot_path=None, path=None) -> None:
     """Write report.csv (+ summary YAML, + plot), each atomically."""
     with atomic_write(output, newline="") as f:
-        rep.table.to_csv(f, index=False, float_format="%.6g", lineterminator="\n")
+        rep.table.to_csv(f, index=False, float_format="%.8g", lineterminator="\n")
     if summary_path:
         with atomic_write(summary_path) as f:
             yaml.safe_dump(rep.summary, f, sort_keys=False)
