@@ -70,22 +70,32 @@ class FrameSource:
         yield from self._video_frames(start, end, every)
 
     def _video_frames(self, start, end, every):
-        cap, i, failures = self.cap, 0, 0
+        """Decode in order; a damaged stretch is reported frame by frame as undecodable and
+        decoding resumes after it (FFmpeg cannot resync by itself, so reopen and seek)."""
+        cap, i = self.cap, 0
+        if start > 0:
+            _seek(cap, start)
+            i = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
         while end is None or i < end:
             try:
                 ok = cap.grab()
             except cv2.error:
                 ok = False
             if not ok:
-                # a damaged stretch mid-video: report it and try to read on
-                if self.count and i < self.count - 1 and failures < 60:
-                    failures += 1
-                    if i >= start and (i - start) % every == 0:
+                if not self.count or i >= self.count:
+                    break  # the real end of the video
+                if (i - start) % every == 0 and i >= start:
+                    yield i, i / self.fps, None
+                i += 1
+                cap.release()
+                cap = self.cap = cv2.VideoCapture(str(self.video))
+                _seek(cap, i)
+                while i < self.count and int(cap.get(cv2.CAP_PROP_POS_FRAMES)) != i:
+                    if (i - start) % every == 0 and i >= start and (end is None or i < end):
                         yield i, i / self.fps, None
                     i += 1
-                    continue
-                break
-            failures = 0
+                    _seek(cap, i)
+                continue
             if i >= start and (i - start) % every == 0:
                 try:
                     ok, frame = cap.retrieve()
@@ -96,6 +106,13 @@ class FrameSource:
                 yield i, t, frame if ok else None
             i += 1
         cap.release()
+
+
+def _seek(cap, frame: int) -> None:
+    try:
+        cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
+    except cv2.error:
+        pass
 
 
 def parse_when(value: str | None, fps: float) -> int | None:

@@ -156,3 +156,21 @@ def test_corrupt_frames_are_reported_and_rest_tracked(sample_model, tmp_path, mi
     est = pd.read_csv(tmp_path / "o.csv")
     assert est.loc[est["frame"] == "kf_005.jpg", "status"].item() == "decode_error"
     assert (est["status"] == "ok").sum() == 35
+
+
+def test_corrupt_video_stretch_keeps_going(sample_model, tmp_path, mirage):
+    """Damaged bytes mid-video: those frames are decode_error, decoding resumes after them."""
+    data = bytearray((SAMPLE / "orbit.mp4").read_bytes())
+    a = len(data) // 3
+    data[a : a + 150_000] = np.random.default_rng(0).integers(0, 256, 150_000, np.uint8).tobytes()
+    bad = tmp_path / "damaged.mp4"
+    bad.write_bytes(bytes(data))
+    p = mirage("track", bad, "--model", sample_model, "-o", tmp_path / "o.csv")
+    assert p.returncode == 0, p.stderr
+    est, truth = read_pose_csv(tmp_path / "o.csv"), read_pose_csv(SAMPLE / "orbit_truth.csv")
+    assert len(est) == len(truth)
+    dec = np.flatnonzero(est["status"] == "decode_error")
+    assert 0 < len(dec) < len(est) // 4
+    assert (est["status"].iloc[dec[-1] + 1 :] == "ok").mean() > 0.7  # tracked after it
+    pos, rot, _ = errors(est, truth)
+    assert np.sum((pos > 0.10) | (rot > 5.0)) == 0
