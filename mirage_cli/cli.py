@@ -39,8 +39,24 @@ def cli(ctx, config_path, verbose, quiet, debug):
     _debug["on"] = debug
     ui.setup(verbose, quiet)
     cfg, src = load_config(config_path)
-    ctx.default_map = cfg
+    ctx.default_map = {
+        name: _by_param_name(cli.commands.get(name), opts) for name, opts in cfg.items()
+    }
     ctx.obj = {"config": cfg, "config_path": src}
+
+
+def _by_param_name(cmd, opts: dict) -> dict:
+    """Config keys are the flags users know (`model` for --model); click's default_map
+    wants its parameter names (`model_path`). Unknown keys are kept as given."""
+    if cmd is None:
+        return opts
+    names = {}
+    for p in cmd.params:
+        names[p.name] = p.name
+        for flag in getattr(p, "opts", []) + getattr(p, "secondary_opts", []):
+            if flag.startswith("--"):
+                names[flag[2:].replace("-", "_")] = p.name
+    return {names.get(k, k): v for k, v in opts.items()}
 
 
 def _register() -> None:

@@ -279,6 +279,8 @@ def track_cmd(
 
     stats = _run(src, tracker, out, camera, first or 0, last, every, overlay, tum, axis_m)
     _summary(stats, out)
+    if stats["interrupted"]:
+        raise click.exceptions.Exit(130)
 
 
 def _run(src, tracker, out: Path, camera, first, last, every, overlay, tum, axis_m) -> dict:

@@ -174,3 +174,14 @@ def test_corrupt_video_stretch_keeps_going(sample_model, tmp_path, mirage):
     assert (est["status"].iloc[dec[-1] + 1 :] == "ok").mean() > 0.7  # tracked after it
     pos, rot, _ = errors(est, truth)
     assert np.sum((pos > 0.10) | (rot > 5.0)) == 0
+
+
+def test_project_config_supplies_model(sample_model, tmp_path, mirage):
+    """Inside a project folder `mirage track video.mp4` needs no other argument."""
+    (tmp_path / "mirage.yaml").write_text(f"track:\n  model: {sample_model}\n  end: 3\n")
+    p = mirage("track", SAMPLE / "orbit.mp4", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert len(pd.read_csv(tmp_path / "poses.csv")) == 3
+    # a flag overrides the project file
+    p = mirage("track", SAMPLE / "orbit.mp4", "--end", "2", "-o", "b.csv", cwd=tmp_path)
+    assert p.returncode == 0 and len(pd.read_csv(tmp_path / "b.csv")) == 2
