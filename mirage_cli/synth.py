@@ -329,12 +329,12 @@ class OrbitPath:
     """A circle around the landmark with wobble in radius, height and heading, changes of
     speed, and a stretch where the camera turns away so the landmark leaves the view."""
 
-    duration_s: float = 20.0
+    duration_s: float = 18.0
     radius_m: float = 1.6
     height_m: float = 0.55
     turns: float = 1.3
     start_deg: float = -20.0
-    look_away_s: tuple[float, float] = (15.6, 17.8)
+    look_away_s: tuple[float, float] = (14.04, 16.02)  # = synth_cli._look_away(18)
     look_away_deg: float = 100.0
 
     def pose(self, t: float) -> Pose:

@@ -34,6 +34,7 @@ class TrackSettings:
     flow: bool = True
     min_flow_points: int = 30
     flow_fb_px: float = 0.7  # forward-backward consistency of Lucas-Kanade
+    flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
     local_keyframes: int = 4  # keyframes near the previous pose to match against
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
@@ -128,6 +129,8 @@ class Tracker:
             seed=self.s.seed,
         )
         res = self._gate(est, len(uv), "flow", check_jump=True)
+        if res.status == "ok" and est.rmse_px > self.s.flow_max_rmse_px:
+            return None  # the flow has drifted or the motion was too large: detect afresh
         if res.status == "ok":
             self.since_detect += 1
             self.track_px, self.track_X = uv[est.inliers].astype(np.float32), X[est.inliers]

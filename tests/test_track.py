@@ -107,7 +107,7 @@ def test_image_folder_input(sample_model, tmp_path, mirage):
     assert (est["status"] == "ok").all()
     assert est["frame"].tolist() == truth["frame"].tolist()
     pos, rot, _ = errors(est, truth)
-    assert pos.max() < 0.02 and rot.max() < 0.5
+    assert pos.max() < 0.03 and rot.max() < 1.0  # 10-degree jumps between views
 
 
 def test_bad_input(sample_model, tmp_path, mirage):
