@@ -43,25 +43,16 @@ def find_sample_data(folder: Path | None) -> Path:
 def project_config(overlay: bool) -> dict:
     """mirage.yaml for the demo folder: run `mirage <command>` inside it with no options.
 
-    Keys are click parameter names; `model`/`camera` are written next to `model_path`/
-    `camera_path` because today's config layer looks options up by parameter name.
+    Keys are the flag names (`model` for --model), as a user would write them.
     """
-    track = {
-        "model": "landmark.mirage",
-        "model_path": "landmark.mirage",
-        "camera": "camera.yaml",
-        "camera_path": "camera.yaml",
-        "output": "poses.csv",
-    }
+    track = {"model": "landmark.mirage", "camera": "camera.yaml", "output": "poses.csv"}
     if overlay:
         track["overlay"] = "overlay.mp4"
     return {
         "calibrate": {"board": "9x6", "square": SQUARE, "output": "camera.yaml"},
         "build-model": {
             "camera": "camera.yaml",
-            "camera_path": "camera.yaml",
             "poses": "keyframes_poses.csv",
-            "poses_path": "keyframes_poses.csv",
             "output": "landmark.mirage",
         },
         "track": track,
