@@ -23,7 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, cv_message
 from .media import iter_video, read_image
 
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
@@ -85,7 +85,7 @@ class Board:
             )
             board.setLegacyPattern(self.legacy)
         except cv2.error as e:
-            raise InputError(f"cannot build ChArUco board {self.label}: {_cv_msg(e)}") from None
+            raise InputError(f"cannot build ChArUco board {self.label}: {cv_message(e)}") from None
         return board
 
 
@@ -125,7 +125,7 @@ def find_corners(
             return _find_charuco(gray, board, subpix_window)
         return _find_chessboard(gray, board, subpix_window)
     except cv2.error as e:
-        raise InputError(f"corner detection failed: {_cv_msg(e)}") from None
+        raise InputError(f"corner detection failed: {cv_message(e)}") from None
 
 
 def _find_chessboard(gray, board: Board, subpix_window=None):
@@ -483,7 +483,7 @@ def _calibrate_views(views, board, size, opts):
         )
     except cv2.error as e:
         raise InputError(
-            f"calibration failed: {_cv_msg(e)} (are the views too similar, "
+            f"calibration failed: {cv_message(e)} (are the views too similar, "
             "or the board size wrong?)"
         ) from None
     if not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -557,8 +557,3 @@ def _too_few_message(det: Detections, board: Board) -> str:
         f"only {n} usable view(s) of the {board.label} {board.pattern} in {det.examined} "
         f"{what}; need at least {MIN_VIEWS} (10-30 recommended)"
     )
-
-
-def _cv_msg(e: cv2.error) -> str:
-    s = str(e).strip()
-    return s.splitlines()[-1] if s else "OpenCV error"

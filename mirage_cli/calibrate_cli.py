@@ -17,7 +17,7 @@ from .media import resolve_inputs, video_info
 _K_NAMES = ("fx", "fy", "cx", "cy")
 
 
-def _parse_board(ctx, param, value):
+def parse_board(ctx, param, value):
     if value is None:
         return None
     m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", str(value))
@@ -40,7 +40,7 @@ def _positive(ctx, param, value):
 @click.option(
     "--board",
     required=True,
-    callback=_parse_board,
+    callback=parse_board,
     help="Chessboard: inner corners COLSxROWS (e.g. 9x6). ChArUco: squares.",
 )
 @click.option(

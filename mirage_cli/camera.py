@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import yaml
 
-from .errors import InputError
+from .errors import InputError, cv_message
 from .fileio import atomic_path, require_file
 from .pose import Pose
 
@@ -144,7 +144,7 @@ class Camera:
         try:
             fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
         except cv2.error as e:
-            raise InputError(f"camera file {p} is not valid OpenCV YAML: {_cv_msg(e)}") from None
+            raise InputError(f"camera file {p} is not valid OpenCV YAML: {cv_message(e)}") from None
         try:
             K = fs.getNode("camera_matrix").mat()
             dist = fs.getNode("distortion_coefficients").mat()
@@ -170,7 +170,9 @@ class Camera:
         try:
             d = yaml.safe_load(text)
         except yaml.YAMLError as e:
-            raise InputError(f"camera file {p} is not valid YAML: {_first_line(e)}") from None
+            raise InputError(
+                f"camera file {p} is not valid YAML: {str(e).strip().splitlines()[0]}"
+            ) from None
         if not isinstance(d, dict):
             raise InputError(f"camera file {p} does not hold a camera (expected a mapping)")
 
@@ -205,11 +207,3 @@ def _fs_write(fs, key, value) -> None:
         fs.write(key, value)
     elif isinstance(value, list | tuple) and all(isinstance(v, int | float) for v in value):
         fs.write(key, np.asarray(value, float).reshape(1, -1))
-
-
-def _cv_msg(e: cv2.error) -> str:
-    return str(e).strip().splitlines()[-1] if str(e).strip() else "OpenCV error"
-
-
-def _first_line(e: Exception) -> str:
-    return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__

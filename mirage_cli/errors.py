@@ -11,3 +11,9 @@ class InputError(MirageError):
 
 class OutputError(MirageError):
     """An output cannot be written."""
+
+
+def cv_message(e: Exception) -> str:
+    """The informative last line of an OpenCV (or other) exception, for one-line errors."""
+    s = str(e).strip()
+    return s.splitlines()[-1] if s else type(e).__name__

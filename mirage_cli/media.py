@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, cv_message
 
 # FFmpeg writes its own complaints ("moov atom not found") straight to stderr, next to
 # our one-line error; silence them (read at the first video open; env can override).
@@ -166,7 +166,7 @@ def iter_video(
                         frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
                     yield index, float(t), frame
             except cv2.error as e:
-                raise InputError(f"cannot decode frame {index} of {p}: {_cv_msg(e)}") from None
+                raise InputError(f"cannot decode frame {index} of {p}: {cv_message(e)}") from None
             index += 1
     finally:
         cap.release()
@@ -190,8 +190,3 @@ def _open_capture(p: Path, strict: bool = True):
 
 def _exts(exts) -> str:
     return ", ".join(sorted(e.lstrip(".") for e in exts))
-
-
-def _cv_msg(e: cv2.error) -> str:
-    s = str(e).strip()
-    return s.splitlines()[-1] if s else "OpenCV error"

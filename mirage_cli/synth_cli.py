@@ -12,6 +12,7 @@ import numpy as np
 import yaml
 
 from . import synth, ui
+from .calibrate_cli import parse_board
 from .camera import Camera
 from .errors import InputError, OutputError
 from .fileio import atomic_path, atomic_write, ensure_dir
@@ -52,16 +53,6 @@ def _render_all(
 def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     with atomic_write(path, "wb") as f:
         f.write(synth.encode_jpeg(img, quality))
-
-
-def _parse_board(value: str) -> tuple[int, int]:
-    try:
-        cols, rows = (int(v) for v in value.lower().split("x"))
-    except ValueError:
-        raise click.BadParameter(f"{value!r} is not COLSxROWS, e.g. 9x6") from None
-    if cols < 2 or rows < 2:
-        raise click.BadParameter("the board needs at least 2x2 inner corners")
-    return cols, rows
 
 
 @click.command("synth")
@@ -178,7 +169,11 @@ def synth_cmd(
             f"unknown part(s) {', '.join(bad) or '(none)'}; choose from {', '.join(PARTS)}",
             param_hint="'--only'",
         )
-    cols, rows = _parse_board(board)
+    try:
+        cols, rows = parse_board(None, None, board)
+    except click.BadParameter as e:
+        e.param_hint = "'--board'"
+        raise
     try:
         hs = [float(h) for h in heights.split(",")]
     except ValueError:
