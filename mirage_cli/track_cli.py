@@ -266,6 +266,8 @@ def track_cmd(
     if src.count == 0 and src.cap is not None:
         ui.log.warning(f"{src.video}: frame count unknown; reading until the end")
     camera = matching_camera(camera, src.width, src.height)
+    if method == "ap3p":
+        ui.log.warning("ap3p solves from 3 points only: for comparing solvers, not for results")
     settings = TrackSettings(
         method=method,
         redetect_every=redetect_every,
