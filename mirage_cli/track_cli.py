@@ -115,7 +115,7 @@ def _seek(cap, frame: int) -> None:
         pass
 
 
-def parse_when(value: str | None, fps: float) -> int | None:
+def parse_when(value: str | None, fps: float, option: str = "--start") -> int | None:
     """'12' frames, '2.5s' seconds, or None."""
     if value is None:
         return None
@@ -125,7 +125,9 @@ def parse_when(value: str | None, fps: float) -> int | None:
             return int(round(float(v[:-1]) * (fps or 30.0)))
         return int(v)
     except ValueError:
-        raise click.BadParameter(f"{value!r}: use a frame number (120) or seconds (4s)") from None
+        raise click.BadParameter(
+            f"{value!r}: use a frame number (120) or seconds (4s)", param_hint=f"'{option}'"
+        ) from None
 
 
 def matching_camera(camera: Camera, width: int, height: int) -> Camera:
@@ -276,7 +278,7 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
-    first, last = parse_when(start, src.fps), parse_when(end, src.fps)
+    first, last = parse_when(start, src.fps), parse_when(end, src.fps, "--end")
     axis_m = float(np.ptp(model.points, axis=0).max() * 0.4) if len(model.points) else 0.2
 
     stats = _run(src, tracker, out, camera, first or 0, last, every, overlay, tum, axis_m)
