@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import run_mirage as mirage
 
 from mirage_cli.calibrate import (
     Board,
@@ -39,16 +38,6 @@ REFERENCE = {"fx": 542.35, "fy": 541.62, "cx": 328.32, "cy": 246.95, "rms": 0.45
 # within 0.5 px on the values below, at RMS 0.19-0.25 px; on synthetic renders every
 # window size lands within 0.2 px of the truth. See the report for issue 3.
 ADAPTIVE = {"fx": 537.5, "fy": 537.0, "cx": 327.4, "cy": 249.0}
-
-
-def mirage(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "mirage_cli", *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=120,
-    )
 
 
 def assert_one_line_error(r, *words):
