@@ -156,16 +156,18 @@ def draw_overlay(img: np.ndarray, res: FrameResult, camera: Camera, axis_m: floa
         if res.inlier_px is not None:
             for x, y in res.inlier_px.astype(int):
                 cv2.circle(out, (int(x), int(y)), 2, (0, 255, 0), -1, cv2.LINE_AA)
-        try:
-            cv2.drawFrameAxes(out, camera.K, camera.dist, res.pose.rvec, res.pose.t, axis_m, 3)
-        except cv2.error:
-            pass
+        ends = np.array([[0, 0, 0], [axis_m, 0, 0], [0, axis_m, 0], [0, 0, axis_m]], float)
+        if (res.pose.transform(ends)[:, 2] > 0.01).all():  # W axes: x red, y green, z blue
+            o, *tips = camera.project(ends, res.pose).round().astype(int)
+            for tip, col in zip(tips, [(0, 0, 255), (0, 255, 0), (255, 0, 0)], strict=True):
+                cv2.line(out, tuple(map(int, o)), tuple(map(int, tip)), col, 3, cv2.LINE_AA)
         text = f"ok  {res.inliers} inliers  {res.rmse_px:.2f}px  kf {res.keyframe}"
         color = (0, 220, 0)
     else:
         text, color = res.status.upper(), (0, 0, 255)
-    cv2.putText(out, text, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, text, (10, 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, color, 1, cv2.LINE_AA)
+    (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 2)
+    cv2.rectangle(out, (4, 4), (16 + w, 16 + h), (0, 0, 0), -1)
+    cv2.putText(out, text, (10, 10 + h), cv2.FONT_HERSHEY_SIMPLEX, 0.6, color, 2, cv2.LINE_AA)
     return out
 
 

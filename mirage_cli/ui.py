@@ -28,6 +28,14 @@ def setup(verbose: int = 0, quiet: bool = False) -> None:
     log.addHandler(h)
     log.propagate = False
     log.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
+    try:  # OpenCV's own console warnings only with -vv
+        import cv2
+
+        cv2.utils.logging.setLogLevel(
+            cv2.utils.logging.LOG_LEVEL_INFO if verbose >= 2 else cv2.utils.logging.LOG_LEVEL_ERROR
+        )
+    except (ImportError, AttributeError):
+        pass
 
 
 def echo(msg: str = "") -> None:
