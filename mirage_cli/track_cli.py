@@ -153,9 +153,14 @@ def matching_camera(camera: Camera, width: int, height: int) -> Camera:
 def draw_overlay(img: np.ndarray, res: FrameResult, camera: Camera, axis_m: float) -> np.ndarray:
     out = img.copy()
     if res.status == "ok":
-        if res.inlier_px is not None:
-            for x, y in res.inlier_px.astype(int):
-                cv2.circle(out, (int(x), int(y)), 2, (0, 255, 0), -1, cv2.LINE_AA)
+        if res.inlier_px is not None:  # 3x3 green dots, stamped with numpy
+            p = np.rint(res.inlier_px).astype(int)
+            h, w = out.shape[:2]
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    x, y = p[:, 0] + dx, p[:, 1] + dy
+                    ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+                    out[y[ok], x[ok]] = (0, 255, 0)
         ends = np.array([[0, 0, 0], [axis_m, 0, 0], [0, axis_m, 0], [0, 0, axis_m]], float)
         if (res.pose.transform(ends)[:, 2] > 0.01).all():  # W axes: x red, y green, z blue
             o, *tips = camera.project(ends, res.pose).round().astype(int)
