@@ -212,7 +212,8 @@ def inspect_cmd(model_path, plot):
         ui.echo("  " + line)
     roi = model.meta.get("roi")
     if roi:
-        ui.echo(f"  volume of interest {roi.get('kind')} {roi.get('values')}")
+        vals = ", ".join(f"{float(v):.3g}" for v in roi.get("values") or [])
+        ui.echo(f"  volume of interest {roi.get('kind')} [{vals}] m")
     gap = coverage_warning(model)
     if gap:
         ui.log.warning(gap)
