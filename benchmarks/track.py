@@ -7,6 +7,8 @@ frame rate of the video as the physical ceiling.
 
     python benchmarks/track.py                # all methods
     python benchmarks/track.py --methods mirage-s --repeats 3
+    mirage synth /tmp/blur --only orbit --duration 6 --motion-blur 4 --noise 3
+    python benchmarks/track.py --data /tmp/blur --methods mirage-s,sqpnp   # stress test
 """
 
 from __future__ import annotations
@@ -173,13 +175,19 @@ def main():
     ap.add_argument("--model", type=Path, help="existing model (default: build from sample)")
     ap.add_argument("--repeats", type=int, default=1, help="runs per pipeline (median fps)")
     ap.add_argument("--no-plain", action="store_true", help="skip the plain OpenCV pipeline")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=SAMPLE,
+        help="folder with orbit.mp4 + orbit_truth.csv (e.g. from mirage synth)",
+    )
     args = ap.parse_args()
     cv2.setNumThreads(2)
     camera = Camera.load(SAMPLE / "camera_truth.yaml")
-    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    truth = read_pose_csv(args.data / "orbit_truth.csv")
     decode = []
     for _ in range(max(1, args.repeats)):
-        frames, dfps = load_frames(SAMPLE / "orbit.mp4")
+        frames, dfps = load_frames(args.data / "orbit.mp4")
         decode.append(dfps)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory():

@@ -25,7 +25,7 @@ from .solver import PoseEstimate, solve_pose
 @dataclass
 class TrackSettings:
     method: str = "mirage-s"
-    redetect_every: int = 10  # frames between full detections while flow holds
+    redetect_every: int = 5  # frames between full detections while flow holds
     min_inliers: int = 15  # fewer consistent points: lost
     min_inlier_ratio: float = 0.25  # of the matches, at detection
     max_rmse_px: float = 2.0

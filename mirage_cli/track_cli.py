@@ -215,7 +215,7 @@ def draw_overlay(img: np.ndarray, res: FrameResult, camera: Camera, axis_m: floa
 @click.option(
     "--redetect-every",
     type=click.IntRange(min=1),
-    default=10,
+    default=5,
     show_default=True,
     help="Full feature detection at least every N frames (optical flow between).",
 )
