@@ -29,7 +29,7 @@ import numpy as np
 from scipy.linalg import lapack
 
 from .camera import Camera
-from .pose import Pose
+from .pose import Pose, rodrigues, rotvec
 
 METHODS = ("mirage-s", "epnp", "sqpnp", "iterative", "ap3p")
 _CV_FLAGS = {
@@ -728,8 +728,32 @@ def _other_minimum(
         # 9 sigma^2 (sigma^2 from the alternative's residuals; noise-free: any drop)
         k = int(m.sum())
         c_alt, c_best = alt.rmse_px**2 * k, best.rmse_px**2 * int(best.inliers.sum())
+        s2 = max(c_alt, c_best) / max(2 * k - 6, 1)
         if c_best - c_alt > 9.0 * c_alt / max(2 * k - 6, 1):
-            best = alt
+            best, alt = alt, best
+            c_best, c_alt = c_alt, c_best
+        best = _two_minima_covariance(best, alt, c_alt - c_best, s2)
+    return best
+
+
+def _two_minima_covariance(best: PoseEstimate, alt: PoseEstimate, dcost: float, s2: float):
+    """Widen the covariance by the other minimum in proportion to its likelihood.
+
+    When the second minimum (the planar flip) explains the pixels almost as well, the
+    solution's error is not Gaussian around the chosen pose: with probability
+    p = L_alt / (L_best + L_alt) the truth sits near the other one. The moments of that
+    two-mode distribution, (1-p) C_best + p C_alt + p (1-p) d d^T, keep sigma honest.
+    """
+    if s2 <= 0.0 or not np.isfinite(dcost):
+        return best
+    r = math.exp(-min(max(dcost, 0.0) / (2.0 * s2), 700.0))
+    p = r / (1.0 + r)
+    if p < 1e-6:
+        return best
+    w = rotvec(alt.pose.R @ best.pose.R.T)  # left perturbation taking best to alt
+    d = np.concatenate([w, alt.pose.t - rodrigues(w) @ best.pose.t])
+    cov = (1.0 - p) * best.covariance + p * alt.covariance + p * (1.0 - p) * np.outer(d, d)
+    best.covariance = 0.5 * (cov + cov.T)
     return best
 
 
