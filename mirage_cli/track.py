@@ -100,7 +100,7 @@ class Tracker:
     def _flow(self, gray: np.ndarray) -> FrameResult | None:
         p0 = self.track_px.reshape(-1, 1, 2)
         lk = dict(
-            winSize=(21, 21),
+            winSize=(15, 15),
             maxLevel=3,
             criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
         )
