@@ -298,9 +298,12 @@ def view_direction(pose: Pose) -> tuple[float, float]:
     return pose.azimuth_deg, float(np.degrees(np.arctan2(c[2], np.hypot(c[0], c[1]))))
 
 
-def select_keyframes(poses: list[Pose], spacing_deg: float) -> list[int]:
+def select_keyframes(
+    poses: list[Pose], spacing_deg: float, max_offaxis_deg: float = 35.0
+) -> list[int]:
     """Indices of one view per azimuth bin (and elevation band when heights differ),
-    the one nearest the bin centre; ordered by band, then azimuth."""
+    the one nearest the bin centre among those looking at the landmark (W's origin within
+    `max_offaxis_deg` of the optical axis); ordered by band, then azimuth."""
     if not poses:
         return []
     az, el = np.array([view_direction(p) for p in poses]).T
@@ -313,9 +316,19 @@ def select_keyframes(poses: list[Pose], spacing_deg: float) -> list[int]:
     pos = np.mod(az, 360.0) / (360.0 / nbins)
     bins = np.mod(np.round(pos).astype(int), nbins)
     off = np.abs(pos - np.round(pos))
+    # views that look away from the landmark (W's origin far off the optical axis) see
+    # little of it: never pick them while another view exists
+    centers = np.array([p.center for p in poses])
+    axes = np.array([p.R[2] for p in poses])  # optical axis in W (third row of R_CW)
+    to_origin = -centers / np.maximum(np.linalg.norm(centers, axis=1, keepdims=True), 1e-9)
+    offaxis = np.degrees(np.arccos(np.clip(np.sum(axes * to_origin, axis=1), -1.0, 1.0)))
+    usable = offaxis <= max_offaxis_deg
+    if not usable.any():
+        usable[:] = True
     best: dict[tuple[int, int], int] = {}
     for i in np.lexsort((np.arange(len(poses)), off)):  # nearest to the bin centre first
-        best.setdefault((int(bands[i]), int(bins[i])), int(i))
+        if usable[i]:
+            best.setdefault((int(bands[i]), int(bins[i])), int(i))
     return [best[k] for k in sorted(best)]
 
 

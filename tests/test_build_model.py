@@ -15,7 +15,7 @@ from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pose import look_at
-from mirage_cli.posecsv import poses_by_frame, read_pose_csv
+from mirage_cli.posecsv import poses_by_frame, read_pose_csv, row_pose
 from mirage_cli.synth import LANDMARK_BOUNDS, landmark_surface_distance
 
 KF = SAMPLE / "keyframes"
@@ -261,3 +261,36 @@ def test_video_input_with_frame_poses(tmp_path, mirage):
     m = LandmarkModel.load(tmp_path / "v.mirage")
     assert len(m.keyframes) == 12 and min(kf.n_linked for kf in m.keyframes) >= 100
     assert "largest gap" in proc.stdout and "azimuth gap" in proc.stderr  # 250 deg unseen
+
+
+def test_from_video_skips_views_looking_away(tmp_path, mirage):
+    """The orbit video with its truth: keyframes come only from views facing the landmark
+    (the look-away stretch is skipped), and the model localises the sample keyframes."""
+    out = tmp_path / "video.mirage"
+    p = mirage(
+        "build-model",
+        SAMPLE / "orbit.mp4",
+        "--poses",
+        SAMPLE / "orbit_truth.csv",
+        "--camera",
+        SAMPLE / "camera_truth.yaml",
+        "-o",
+        out,
+    )
+    assert p.returncode == 0, p.stderr
+    m = LandmarkModel.load(out)
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    away = set(truth.loc[truth["landmark_visible"] == 0, "frame"].astype(int))
+    picked = {int(k.name.split("_")[-1]) for k in m.keyframes}
+    assert not picked & away
+    assert min(k.n_linked for k in m.keyframes) >= 100
+    p = mirage("track", SAMPLE / "keyframes", "--model", out, "-o", tmp_path / "k.csv")
+    assert p.returncode == 0, p.stderr
+    est, kf = (
+        read_pose_csv(tmp_path / "k.csv"),
+        poses_by_frame(read_pose_csv(SAMPLE / "keyframes" / "poses.csv")),
+    )
+    assert (est["status"] == "ok").all()
+
+    err = [row_pose(r).distance_to(kf[r["frame"]]) for _, r in est.iterrows()]
+    assert np.median(err) < 0.005 and max(err) < 0.03
