@@ -185,3 +185,21 @@ def test_project_config_supplies_model(sample_model, tmp_path, mirage):
     # a flag overrides the project file
     p = mirage("track", SAMPLE / "orbit.mp4", "--end", "2", "-o", "b.csv", cwd=tmp_path)
     assert p.returncode == 0 and len(pd.read_csv(tmp_path / "b.csv")) == 2
+
+
+def test_half_size_video_scales_intrinsics(sample_model, tmp_path, mirage):
+    """Same aspect ratio, half the size: the camera is scaled (with a warning), poses hold."""
+    cap = cv2.VideoCapture(str(SAMPLE / "orbit.mp4"))
+    half = tmp_path / "half.mp4"
+    w = cv2.VideoWriter(str(half), cv2.VideoWriter_fourcc(*"mp4v"), 30, (320, 240))
+    for _ in range(30):
+        ok, f = cap.read()
+        w.write(cv2.resize(f, (320, 240), interpolation=cv2.INTER_AREA))
+    w.release()
+    p = mirage("track", half, "--model", sample_model, "-o", tmp_path / "h.csv")
+    assert p.returncode == 0, p.stderr
+    assert "scaling the intrinsics" in p.stderr
+    est, truth = read_pose_csv(tmp_path / "h.csv"), read_pose_csv(SAMPLE / "orbit_truth.csv")
+    assert (est["status"] == "ok").all()
+    pos, rot, _ = errors(est, truth.iloc[:30])
+    assert np.median(pos) < 0.03 and np.median(rot) < 0.6
