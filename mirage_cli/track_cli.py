@@ -322,6 +322,7 @@ def _loop(src, tracker, out, camera, first, last, every, ov_tmp, axis_m, total, 
     writer_ov = None
     try:
         with PoseCSVWriter(out, DIAG) as w, ui.progress(total, "tracking") as bar:
+            t_loop = time.perf_counter()
             for fid, t, img in src.frames(first, last, every):
                 t0 = time.perf_counter()
                 if img is None:
@@ -361,7 +362,10 @@ def _loop(src, tracker, out, camera, first, last, every, ov_tmp, axis_m, total, 
                         if not writer_ov.isOpened():
                             raise OutputError("cannot write the overlay video (mp4v)")
                     writer_ov.write(draw_overlay(img, res, camera, axis_m))
-                bar.update(1)
+                done = len(rows)
+                if done % 10 == 0:
+                    rate = done / max(time.perf_counter() - t_loop, 1e-9)
+                    bar.update(10, f"{rate:.0f} frames/s")
     finally:
         if writer_ov is not None:
             writer_ov.release()

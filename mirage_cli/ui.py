@@ -52,7 +52,13 @@ def progress_enabled() -> bool:
 def progress(length: int | None, label: str):
     """A click progress bar when stdout is a terminal, else a no-op with the same API."""
     if progress_enabled():
-        with click.progressbar(length=length, label=label, show_pos=True, show_eta=True) as bar:
+        with click.progressbar(
+            length=length,
+            label=label,
+            show_pos=True,
+            show_eta=True,
+            item_show_func=lambda item: item,  # callers may pass e.g. "42 fps"
+        ) as bar:
             yield bar
     else:
 
