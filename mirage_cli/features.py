@@ -94,7 +94,7 @@ def detect(gray: np.ndarray, detector: Detector) -> tuple[np.ndarray, np.ndarray
     if desc is None or not kps:
         d = 32 if settings.name == "orb" else 61 if settings.name == "akaze" else 128
         return np.zeros((0, 2), np.float32), np.zeros((0, d), np.uint8 if binary else np.float32)
-    pts = np.array([k.pt for k in kps], np.float32).reshape(-1, 2)
+    pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32)
     if len(kps) > settings.nfeatures:
         resp = np.array([k.response for k in kps])
         keep = np.sort(np.argsort(-resp, kind="stable")[: settings.nfeatures])
