@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 import traceback
+from pathlib import Path
 
 import click
 
@@ -39,24 +40,35 @@ def cli(ctx, config_path, verbose, quiet, debug):
     _debug["on"] = debug
     ui.setup(verbose, quiet)
     cfg, src = load_config(config_path)
+    base = src.parent if src is not None else None
     ctx.default_map = {
-        name: _by_param_name(cli.commands.get(name), opts) for name, opts in cfg.items()
+        name: _by_param_name(cli.commands.get(name), opts, base) for name, opts in cfg.items()
     }
     ctx.obj = {"config": cfg, "config_path": src}
 
 
-def _by_param_name(cmd, opts: dict) -> dict:
+def _by_param_name(cmd, opts: dict, base: Path | None = None) -> dict:
     """Config keys are the flags users know (`model` for --model); click's default_map
-    wants its parameter names (`model_path`). Unknown keys are kept as given."""
+    wants its parameter names (`model_path`). Relative file options are taken relative to
+    the config file, so `--config project/mirage.yaml` works from anywhere. Unknown keys
+    are kept as given."""
     if cmd is None:
         return opts
-    names = {}
+    names, paths = {}, set()
     for p in cmd.params:
         names[p.name] = p.name
         for flag in getattr(p, "opts", []) + getattr(p, "secondary_opts", []):
             if flag.startswith("--"):
                 names[flag[2:].replace("-", "_")] = p.name
-    return {names.get(k, k): v for k, v in opts.items()}
+        if isinstance(p.type, click.Path):
+            paths.add(p.name)
+    out = {}
+    for k, v in opts.items():
+        name = names.get(k, k)
+        if base is not None and name in paths and isinstance(v, str) and v:
+            v = str(base / v) if not Path(v).is_absolute() else v
+        out[name] = v
+    return out
 
 
 def _register() -> None:

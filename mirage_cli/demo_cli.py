@@ -163,8 +163,8 @@ def demo_cmd(ctx, out, sample_data, overlay):
         ui.echo()
     with atomic_write(d / "mirage.yaml") as f:
         f.write(
-            "# Project folder written by `mirage demo`. Paths are relative to the working\n"
-            "# directory: run mirage from inside this folder, e.g.\n"
+            "# Project folder written by `mirage demo`. Paths are relative to this file:\n"
+            "# run mirage inside this folder (or pass --config to this file), e.g.\n"
             f"#   mirage track {src / 'orbit.mp4'}\n"
             "#   mirage report poses.csv\n"
         )

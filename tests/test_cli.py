@@ -55,3 +55,30 @@ def test_project_config_used_and_flags_win(mirage, tmp_path):
     )
     assert p.returncode == 0, p.stderr
     assert len(list((tmp_path / "out" / "calibration").glob("*.jpg"))) == 1
+
+
+def test_config_paths_are_relative_to_the_config_file(mirage, tmp_path):
+    proj = tmp_path / "proj"
+    proj.mkdir()
+    (proj / "mirage.yaml").write_text("synth:\n  camera: cam.yaml\n")
+    (proj / "cam.yaml").write_text(
+        "image_width: 160\nimage_height: 120\n"
+        "camera_matrix: {rows: 3, cols: 3, data: [130, 0, 80, 0, 130, 60, 0, 0, 1]}\n"
+    )
+    p = mirage(
+        "--config",
+        proj / "mirage.yaml",
+        "synth",
+        "out",
+        "--only",
+        "calibration",
+        "--calib-views",
+        "1",
+        cwd=tmp_path,
+    )
+    assert p.returncode == 0, p.stderr
+    img = (tmp_path / "out" / "calibration" / "calib_000.jpg").read_bytes()
+    import cv2
+    import numpy as np
+
+    assert cv2.imdecode(np.frombuffer(img, np.uint8), 0).shape == (120, 160)
