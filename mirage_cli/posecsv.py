@@ -14,7 +14,7 @@ import pandas as pd
 
 from .errors import InputError
 from .fileio import check_writable, require_file
-from .pose import Pose
+from .pose import R_CB, Pose
 
 POSE_COLUMNS = [
     "frame", "time_s", "status", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz",
@@ -160,10 +160,11 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
             raise InputError(f"pose file {p}: row {i + 2} has a zero quaternion")
         df.loc[ok, ["qw", "qx", "qy", "qz"]] = q / n[:, None]
         angles = np.full((len(df), 4), np.nan)
-        for i in np.flatnonzero(ok.to_numpy()):
-            pose = row_pose(df.iloc[i])
-            angles[i, :3] = pose.rpy_deg
-            angles[i, 3] = pose.azimuth_deg
+        okn = ok.to_numpy()
+        angles[okn] = derived_angles(
+            df.loc[ok, ["x_m", "y_m", "z_m"]].to_numpy(),
+            df.loc[ok, ["qw", "qx", "qy", "qz"]].to_numpy(),
+        )
         df[["roll_deg", "pitch_deg", "yaw_deg", "azimuth_deg"]] = angles
     df["frame"] = df["frame"].str.strip()
     known = set(POSE_COLUMNS) | {"status"}
@@ -174,6 +175,24 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
             if not (num.isna() & (raw != "")).any():
                 df[col] = num
     return df
+
+
+def derived_angles(centers: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """(N,4) roll, pitch, yaw (REP-103, camera body frame) and azimuth in degrees, for
+    camera centres (N,3) and unit quaternions (N,4) of R_WC: the file's derived columns."""
+    w, x, y, z = quats.T
+    # R_WC rows as in pose.matrix_from_quat, then R_WB = R_WC @ R_CB (body x = optical axis)
+    R = np.empty((len(quats), 3, 3))
+    R[:, 0] = np.column_stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)])
+    R[:, 1] = np.column_stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)])
+    R[:, 2] = np.column_stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)])
+    B = R @ R_CB
+    pitch = np.arctan2(-B[:, 2, 0], np.hypot(B[:, 0, 0], B[:, 1, 0]))
+    roll = np.arctan2(B[:, 2, 1], B[:, 2, 2])
+    yaw = np.arctan2(B[:, 1, 0], B[:, 0, 0])
+    az = np.degrees(np.arctan2(centers[:, 1], centers[:, 0]))
+    az[az <= -180.0] = 180.0
+    return np.column_stack([np.degrees(roll), np.degrees(pitch), np.degrees(yaw), az])
 
 
 def row_pose(row) -> Pose | None:

@@ -95,3 +95,14 @@ def test_lost_rows_may_be_empty(tmp_path):
     p.write_text("frame,status,x_m,y_m,z_m,qw,qx,qy,qz\n0,ok,1,2,3,1,0,0,0\n1,lost,,,,,,,\n")
     df = read_pose_csv(p)
     assert df["status"].tolist() == ["ok", "lost"]
+
+
+def test_vectorised_angles_match_pose():
+    from mirage_cli.posecsv import derived_angles
+
+    poses = some_poses(200)
+    got = derived_angles(
+        np.array([p.center for p in poses]), np.array([p.quat_wxyz for p in poses])
+    )
+    want = np.array([[*p.rpy_deg, p.azimuth_deg] for p in poses])
+    assert np.allclose(got, want, atol=1e-9)
