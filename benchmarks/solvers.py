@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.pose import Pose, look_at, rodrigues, rotvec  # noqa: E402
-from mirage_cli.solver import solve_pose  # noqa: E402
+from mirage_cli.solver import cramer_rao_covariance, solve_pose  # noqa: E402
 
 SOLVERS = ("mirage-s", "epnp", "sqpnp", "iterative", "ap3p")
 CAM = Camera.from_params(1280, 720, 1000.0)
@@ -85,13 +85,7 @@ def observe(rng, X, truth, sigma: float, outlier_ratio: float = 0.0):
 
 def crb(X, truth: Pose, sigma: float) -> tuple[float, float]:
     """(trace of rotation block [rad^2], trace of translation block [m^2]) of the bound."""
-    Xc = truth.transform(X)
-    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1.0 / Xc[:, 2]
-    z0 = np.zeros_like(x)
-    Jx = CAM.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z0, -x * iz])
-    Jy = CAM.fy * np.column_stack([-(1 + y * y), x * y, x, z0, iz, -y * iz])
-    J = np.vstack([Jx, Jy])
-    cov = np.linalg.inv(J.T @ J) * sigma**2
+    cov = cramer_rao_covariance(X, truth, CAM, sigma)
     return float(np.trace(cov[:3, :3])), float(np.trace(cov[3:, 3:]))
 
 

@@ -480,6 +480,23 @@ def _ransac(X, u, camera: Camera, threshold_px: float, seed: int, iterations: in
     return pose, mask
 
 
+def cramer_rao_covariance(points_3d, pose: Pose, camera: Camera, sigma_px: float) -> np.ndarray:
+    """6x6 Cramer-Rao bound (J^T J)^-1 sigma^2 at `pose`, in the same parametrisation as
+    `PoseEstimate.covariance` (left perturbation: rotation vector rad, translation m):
+    the best any unbiased estimator can do with these points and isotropic pixel noise."""
+    X = np.ascontiguousarray(np.asarray(points_3d, dtype=np.float64).reshape(-1, 3))
+    Xc = pose.transform(X)
+    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1.0 / Xc[:, 2]
+    z0 = np.zeros_like(x)
+    J = np.vstack(
+        [
+            camera.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z0, -x * iz]),
+            camera.fy * np.column_stack([-(1 + y * y), x * y, x, z0, iz, -y * iz]),
+        ]
+    )
+    return np.linalg.inv(J.T @ J) * sigma_px**2
+
+
 def solve_pose(
     points_3d,
     points_2d,
@@ -515,25 +532,9 @@ def solve_pose(
     error, px) exceeds it is reported as a failure instead of a doubtful pose.
     Never raises for bad numeric input: failures come back with success=False and a reason.
     """
+    args = {k: v for k, v in locals().items() if k != "max_rmse_px"}
     try:
-        est = _solve(
-            points_3d,
-            points_2d,
-            camera,
-            reference_pose,
-            method,
-            ransac,
-            ransac_threshold_px,
-            seed,
-            robust,
-            max_iterations,
-            huber_px,
-            pixel_sigma,
-            default_pixel_sigma,
-            ransac_iterations,
-            ransac_confidence,
-            tol,
-        )
+        est = _solve(**args)
     except (np.linalg.LinAlgError, cv2.error, FloatingPointError) as e:  # belt and braces
         return _fail(f"numerical failure: {type(e).__name__}", _count(points_3d), str(method))
     if est.success and max_rmse_px is not None and not est.rmse_px <= max_rmse_px:
@@ -557,21 +558,21 @@ def _solve(
     points_3d,
     points_2d,
     camera: Camera,
-    reference_pose: Pose | None = None,
-    method: str = "mirage-s",
-    ransac: bool = False,
-    ransac_threshold_px: float = 4.0,
-    seed: int = 0,
-    robust: str = "huber",
-    max_iterations: int = 100,
-    huber_px: float = 3.0,
-    pixel_sigma: float | None = None,
-    default_pixel_sigma: float = 1.0,
-    ransac_iterations: int = 500,
-    ransac_confidence: float = 0.999,
-    tol: float = 1e-6,
+    reference_pose: Pose | None,
+    method: str,
+    ransac: bool,
+    ransac_threshold_px: float,
+    seed: int,
+    robust: str,
+    max_iterations: int,
+    huber_px: float,
+    pixel_sigma: float | None,
+    default_pixel_sigma: float,
+    ransac_iterations: int,
+    ransac_confidence: float,
+    tol: float,
 ) -> PoseEstimate:
-    """The body of `solve_pose` (see there)."""
+    """The body of `solve_pose` (see there for the arguments and their defaults)."""
     method = str(method).lower()
     if method not in METHODS:
         return _fail(f"unknown method '{method}' (choose from {', '.join(METHODS)})", 0, method)

@@ -15,6 +15,7 @@ import pytest
 from mirage_cli import PoseEstimate, solve_pose
 from mirage_cli.camera import Camera
 from mirage_cli.pose import Pose, look_at, rodrigues, rotvec
+from mirage_cli.solver import cramer_rao_covariance
 
 CAM = Camera.from_params(1280, 720, 1000.0)
 
@@ -61,16 +62,7 @@ def errs(est: Pose, truth: Pose):
 
 
 def crb_traces(X, truth, sigma, cam=CAM):
-    Xc = truth.transform(X)
-    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1 / Xc[:, 2]
-    z = np.zeros_like(x)
-    J = np.vstack(
-        [
-            cam.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z, -x * iz]),
-            cam.fy * np.column_stack([-(1 + y * y), x * y, x, z, iz, -y * iz]),
-        ]
-    )
-    C = np.linalg.inv(J.T @ J) * sigma**2
+    C = cramer_rao_covariance(X, truth, cam, sigma)
     return np.trace(C[:3, :3]), np.trace(C[3:, 3:])
 
 
