@@ -24,14 +24,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .camera import Camera
 from .errors import InputError
 from .features import DetectorSettings, detect, make_detector, ratio_match
-from .fileio import require_file
+from .fileio import read_yaml, require_file
 from .media import iter_video, read_image, resolve_inputs, video_info
 from .model import Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
 from .pose import Pose, matrix_from_rpy
@@ -180,10 +179,7 @@ class BoardSpec:
 
 def load_board(path) -> BoardSpec:
     p = require_file(path, "board file")
-    try:
-        d = yaml.safe_load(p.read_text())
-    except (yaml.YAMLError, UnicodeDecodeError) as e:
-        raise InputError(f"board file {p} is not valid YAML: {str(e).splitlines()[0]}") from None
+    d = read_yaml(p, "board file")
     if not isinstance(d, dict):
         raise InputError(f"board file {p}: expected a mapping with type, squares, ...")
     try:

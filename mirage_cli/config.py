@@ -13,18 +13,13 @@ from pathlib import Path
 import yaml
 
 from .errors import InputError
-from .fileio import require_file
+from .fileio import read_yaml, require_file
 
 PROJECT_CONFIG = "mirage.yaml"
 
 
 def _read_yaml(path: Path) -> dict:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark is not None else ""
-        raise InputError(f"config file {path} is not valid YAML{where}") from None
+    data = read_yaml(path, "config file")
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -7,6 +7,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import yaml
+
 from .errors import InputError, OutputError
 
 
@@ -80,3 +82,15 @@ def require_file(path: str | os.PathLike, what: str = "file") -> Path:
     if not os.access(p, os.R_OK):
         raise InputError(f"{what} {p} is not readable (permission denied)")
     return p
+
+
+def read_yaml(path: Path, what: str):
+    """Parsed YAML of a user's file; bad syntax or a binary file is one clear line."""
+    try:
+        return yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        raise InputError(f"{what} {path} is not valid YAML{where}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{what} {path} is not a text file") from None

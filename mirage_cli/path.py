@@ -12,10 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from .errors import InputError
-from .fileio import require_file
+from .fileio import read_yaml, require_file
 
 PATH_TYPES = ("circle", "polyline")
 
@@ -181,14 +180,7 @@ def load_path(path) -> Path_:
     p = require_file(path, "path file")
     if p.suffix.lower() == ".csv":
         return _polyline_csv(p)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark is not None else ""
-        raise InputError(f"path file {p} is not valid YAML{where}") from None
-    except UnicodeDecodeError:
-        raise InputError(f"path file {p} is not a text file") from None
+    data = read_yaml(p, "path file")
     if not isinstance(data, dict):
         raise InputError(f"path file {p} must be a YAML mapping with 'type: circle|polyline'")
     return path_from_dict(data, str(p))
