@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.linalg import lapack
 
+from . import refine as _k
 from .camera import Camera
 from .pose import Pose, rodrigues, rotvec
 
@@ -38,8 +38,6 @@ _CV_FLAGS = {
     "iterative": cv2.SOLVEPNP_ITERATIVE,
     "ap3p": cv2.SOLVEPNP_AP3P,
 }
-_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median of |r| for 2D N(0, s^2 I) is 1.1774 s
-_MIN_DEPTH = 1e-6  # m: points closer to (or behind) the camera plane are invalid
 _MIN_ROBUST = 6  # below this many points (<= 4 redundant equations) robust weights only cost
 
 
@@ -87,150 +85,47 @@ def _fail(reason: str, n: int, method: str, iterations: int = 0) -> PoseEstimate
     )
 
 
-def _exp_so3(w0: float, w1: float, w2: float) -> np.ndarray:
-    """Rotation matrix of a rotation vector (Rodrigues), lean for the inner loop."""
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    if th2 < 1e-16:
-        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
-    else:
-        th = math.sqrt(th2)
-        a, b = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    # R = I + a K + b K^2, with K^2 = w w^T - th2 I
-    return np.array(
-        [
-            [1.0 + b * (w0 * w0 - th2), b * w0 * w1 - a * w2, b * w0 * w2 + a * w1],
-            [b * w0 * w1 + a * w2, 1.0 + b * (w1 * w1 - th2), b * w1 * w2 - a * w0],
-            [b * w0 * w2 - a * w1, b * w1 * w2 + a * w0, 1.0 + b * (w2 * w2 - th2)],
-        ]
-    )
-
-
 class _Problem:
-    """Correspondences in normalised coordinates, with buffers reused by every iteration.
-
-    Residuals are kept in normalised units e = [x_obs - x; y_obs - y] (length 2n) and weighted
-    by fx^2 / fy^2 so that costs, RMSE and covariance come out in pixels.  The Jacobian is
-    stored transposed (6 x 2n) so each row is written contiguously; columns 0 and 5 are
-    stored negated (both halves share the sign) and the x half of row 2 likewise, which the
-    solve undoes with a sign vector instead of extra negations per iteration.
-    """
-
-    _SIGN = np.array([-1.0, 1.0, -1.0, 1.0, 1.0, -1.0])
+    """Correspondences: world points (n, 3) and undistorted normalised image points (n, 2),
+    contiguous for the compiled kernels in `refine`; residuals are weighted by fx^2 / fy^2
+    so costs, RMSE and covariance come out in pixels."""
 
     def __init__(self, X: np.ndarray, xy: np.ndarray, fx: float, fy: float):
-        n = len(X)
-        self.n = n
-        self.X = X
-        self.XT = np.ascontiguousarray(X.T)
-        self.obs = np.concatenate((xy[:, 0], xy[:, 1]))
-        self.fx, self.fy = fx, fy
-        self.fs2 = np.concatenate((np.full(n, fx * fx), np.full(n, fy * fy)))
-        self.pred = np.empty(2 * n)
-        self.At = np.zeros((6, 2 * n))
+        self.n = len(X)
+        self.X = np.ascontiguousarray(X, dtype=np.float64)
+        self.xy = np.ascontiguousarray(xy, dtype=np.float64)
+        self.fx, self.fy = float(fx), float(fy)
 
     def residuals(self, R: np.ndarray, t: np.ndarray):
-        """(e, e2, r2, iz, zmin): normalised residuals, their pixel squares, per-point |r|^2."""
+        """(e, r2, pred, iz, zmin): normalised residuals (n, 2), per-point |r|^2 in px^2, the
+        predicted points and inverse depths; only meaningful when zmin > MIN_DEPTH."""
         n = self.n
-        Xc = R @ self.XT
-        Xc += t[:, None]
-        z = Xc[2]
-        zmin = float(z.min())
-        if zmin <= _MIN_DEPTH:
-            return None, None, None, None, zmin
-        iz = 1.0 / z
-        p = self.pred.reshape(2, n)
-        np.multiply(Xc[:2], iz, out=p)
-        e = self.obs - self.pred
-        e2 = e * e
-        e2 *= self.fs2
-        r2 = e2[:n] + e2[n:]
-        return e, e2, r2, iz, zmin
+        e, r2, pred, iz = np.empty((n, 2)), np.empty(n), np.empty((n, 2)), np.empty(n)
+        zmin = _k.residuals(self.X, self.xy, self.fx, self.fy, R, t, e, r2, pred, iz)
+        return e, r2, pred, iz, zmin
 
     def point_r2(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Per-point squared pixel error; inf for points behind the camera (outliers may be)."""
-        Xc = R @ self.XT + t[:, None]
-        front = Xc[2] > _MIN_DEPTH
-        p = Xc[:2] / np.where(front, Xc[2], 1.0)
-        e = self.obs.reshape(2, self.n) - p
-        r2 = (e[0] * self.fx) ** 2 + (e[1] * self.fy) ** 2
+        Xc = self.X @ R.T + t
+        front = Xc[:, 2] > _k.MIN_DEPTH
+        p = Xc[:, :2] / np.where(front, Xc[:, 2], 1.0)[:, None]
+        e = self.xy - p
+        r2 = (e[:, 0] * self.fx) ** 2 + (e[:, 1] * self.fy) ** 2
         r2[~front] = np.inf
         return r2
 
-    def normal_equations(self, iz: np.ndarray, wt: np.ndarray, e: np.ndarray):
-        """H = J^T W J and g = J^T W e for the left perturbation (w, v), pixel units.
-
-        Uses the predicted points of the last `residuals` call (the linearisation point).
-        """
-        n = self.n
-        At = self.At
-        x, y = self.pred[:n], self.pred[n:]
-        # d(x, y)/d(w, v) of x = X/Z, y = Y/Z under X_c -> X_c + w x X_c + v:
-        #   x row: [-x y, 1 + x^2, -y, 1/z, 0, -x/z];  y row: [-(1 + y^2), x y, x, 0, 1/z, -y/z]
-        np.multiply(x, y, out=At[0, :n])
-        At[1, n:] = At[0, :n]
-        np.multiply(x, x, out=At[1, :n])
-        At[1, :n] += 1.0
-        np.multiply(y, y, out=At[0, n:])
-        At[0, n:] += 1.0
-        At[2, :n] = y
-        np.negative(x, out=At[2, n:])
-        At[3, :n] = iz
-        At[4, n:] = iz
-        np.multiply(x, iz, out=At[5, :n])
-        np.multiply(y, iz, out=At[5, n:])
-        w2 = np.concatenate((wt, wt))
-        w2 *= self.fs2
-        Aw = At * w2
-        H = Aw @ At.T
-        g = Aw @ e
-        s = self._SIGN
-        return H * s[:, None] * s, g * s
+    def normal_equations(self, pred, iz, wt, e):
+        """H = J^T W J and g = J^T W e (pixel units) at the predicted points `pred`."""
+        H, g = np.empty((6, 6)), np.empty(6)
+        _k.normal_equations(self.fx, self.fy, pred, iz, np.ascontiguousarray(wt, float), e, H, g)
+        return H, g
 
 
-def _robust_weights(r2: np.ndarray, robust: str, huber_px: float, reject_px: float):
-    """IRLS weights: Huber on the 2D residual norm, hard rejection of gross outliers.
-
-    The thresholds adapt to a robust scale (median |r| of a 2D Gaussian is 1.18 sigma), so
-    far from the solution, when every residual is large, the weights stay near least squares
-    and only real outliers are damped; near the solution the px floors apply.
-    """
-    if robust == "none":
-        return np.ones_like(r2)
-    m = len(r2) // 2
-    s2 = float(np.partition(r2, m)[m]) / (_RAYLEIGH_MEDIAN * _RAYLEIGH_MEDIAN)
-    k2 = max(huber_px * huber_px, 6.25 * s2)
-    cut2 = max(reject_px * reject_px, 25.0 * s2)
-    wt = np.sqrt(k2 / np.maximum(r2, 1e-300))
-    np.minimum(wt, 1.0, out=wt)
-    far = r2 > cut2
-    if far.any() and len(r2) - int(far.sum()) >= 3:
-        wt[far] = 0.0
-    return wt
-
-
-def _spd_solve(H: np.ndarray, g: np.ndarray) -> np.ndarray | None:
-    """Cholesky solve of the 6x6 normal equations (LAPACK dposv: ~5x less overhead than
-    np.linalg.solve); None when H is not positive definite (degenerate geometry)."""
-    _, x, info = lapack.dposv(H, g)
-    return x if info == 0 else None
-
-
-def _try_step(prob: _Problem, R, t, delta, alpha: float, wt):
-    """(weighted cost, step, state) at exp(alpha delta) T, or None if points go behind."""
-    d = delta * alpha if alpha != 1.0 else delta
-    d0, d1, d2, d3, d4, d5 = d.tolist()
-    if not math.isfinite(d0 + d1 + d2 + d3 + d4 + d5):
-        return None
-    dR = _exp_so3(d0, d1, d2)
-    R1 = dR @ R
-    t1 = dR @ t
-    t1[0] += d3
-    t1[1] += d4
-    t1[2] += d5
-    e1, e21, r21, iz1, _ = prob.residuals(R1, t1)
-    if e1 is None:
-        return None
-    return float(np.dot(wt, r21)), d, (R1, t1, e1, e21, r21, iz1)
+_REFINE_FAILURES = {
+    _k.BEHIND_AT_START: "points behind the camera at the start pose",
+    _k.SINGULAR: "singular system (degenerate point configuration)",
+    _k.DIVERGED: "diverged (non-finite pose)",
+}
 
 
 def _refine(
@@ -242,86 +137,26 @@ def _refine(
     reject_px: float,
     tol: float,
 ):
-    """Gauss-Newton / IRLS on the left perturbation.  Returns a dict or a failure reason."""
-    R, t = pose.R.copy(), pose.t.copy()
-    e, e2, r2, iz, zmin = prob.residuals(R, t)
-    if e is None:
-        return "points behind the camera at the start pose"
-    inv_depth = float(iz.sum()) / prob.n
-    dof = 2 * prob.n - 6
-    lam = 0.0  # Levenberg-Marquardt damping, 0 = pure Gauss-Newton
-    converged = False
-    iterations = 0
-    H = None
-    wt = None
-    for it in range(1, max_iterations + 1):
-        iterations = it
-        wt = _robust_weights(r2, robust if prob.n >= _MIN_ROBUST else "none", huber_px, reject_px)
-        H, g = prob.normal_equations(iz, wt, e)
-        cost0 = float(np.dot(wt, r2))
-        # Gauss-Newton step (lam = 0) with an exact line search, else Levenberg-Marquardt:
-        # damp until the cost drops.  The damping persists (shrinking) across iterations, so
-        # a near-singular direction (small planar targets) cannot throw the pose around.
-        best = None
-        while best is None:
-            step = _spd_solve(H + np.diag(lam * np.diag(H)) if lam > 0.0 else H, g)
-            if step is None:
-                return "singular system (degenerate point configuration)"
-            slope = float(step @ g)  # cost(a) = cost0 - 2 a slope + O(a^2) along the step
-            if not math.isfinite(slope):
-                return "singular system (degenerate point configuration)"
-            trial = _try_step(prob, R, t, step, 1.0, wt)
-            if trial is not None and lam == 0.0:
-                # Exact line search on the parabola through cost0, its slope and cost(1):
-                # Gauss-Newton on a large-residual problem overshoots (or undershoots) along
-                # a weak direction and would otherwise converge only linearly there.
-                curv = trial[0] - cost0 + 2.0 * slope
-                alpha = min(slope / curv, 8.0) if curv > 0.0 else 4.0
-                if alpha >= 0.2 and abs(alpha - 1.0) > 0.15:
-                    t2 = _try_step(prob, R, t, step, alpha, wt)
-                    if t2 is not None and t2[0] < trial[0]:
-                        trial = t2
-            if trial is not None and trial[0] <= cost0 * (1.0 + 1e-12) + 1e-30:
-                best = trial
-            elif lam > 1e8:
-                break
-            else:
-                lam = 1e-6 if lam == 0.0 else lam * 4.0
-        if best is None:
-            converged = True  # no descent possible: at a minimum to machine precision
-            break
-        damped = lam > 0.0
-        lam = 0.0 if lam <= 1e-9 else lam / 3.0
-        cost1, delta, (R1, t1, e1, e21, r21, iz1) = best
-        d0, d1, d2, d3, d4, d5 = delta.tolist()
-        R, t = R1, t1
-        e, r2, iz = e1, r21, iz1
-        small = (
-            math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-            + math.sqrt(d3 * d3 + d4 * d4 + d5 * d5) * inv_depth
-        )
-        # Converged when the step is tiny, or (with redundancy) when it moves the pose by
-        # less than ~1e-3 of its own standard deviation (delta^T H delta vs sigma^2): large-
-        # residual problems with a weak direction converge only linearly there.
-        if (
-            small < tol
-            or cost0 - cost1 <= 1e-14 * cost0
-            or (dof > 0 and not damped and slope < 1e-6 * cost0 / dof)
-        ):
-            converged = True
-            break
-    if not math.isfinite(float(np.sum(R) + np.sum(t))):
-        return "diverged (non-finite pose)"
-    wt = _robust_weights(r2, robust if prob.n >= _MIN_ROBUST else "none", huber_px, reject_px)
-    if not converged:
-        # one more linearisation at the final pose so the covariance belongs to it
-        H, g = prob.normal_equations(iz, wt, e)
-        d = _spd_solve(H, g)
-        if d is None:
-            return "singular system (degenerate point configuration)"
-        if not np.linalg.norm(d[:3]) + np.linalg.norm(d[3:]) * inv_depth <= 1e-6:
-            return f"did not converge in {max_iterations} iterations"
-    return {"R": R, "t": t, "r2": r2, "wt": wt, "H": H, "iterations": iterations}
+    """Gauss-Newton / IRLS on the left perturbation (compiled, see `refine`).  Returns a dict
+    or a failure reason."""
+    status, R, t, r2, wt, H, iterations = _k.refine(
+        prob.X,
+        prob.xy,
+        prob.fx,
+        prob.fy,
+        np.ascontiguousarray(pose.R, dtype=np.float64),
+        np.ascontiguousarray(pose.t, dtype=np.float64),
+        int(max_iterations),
+        robust == "huber" and prob.n >= _MIN_ROBUST,
+        float(huber_px),
+        float(reject_px),
+        float(tol),
+    )
+    if status == _k.NOT_CONVERGED:
+        return f"did not converge in {max_iterations} iterations"
+    if status != _k.OK:
+        return _REFINE_FAILURES[status]
+    return {"R": R, "t": t, "r2": r2, "wt": wt, "H": H, "iterations": int(iterations)}
 
 
 def _validate(points_3d, points_2d):
@@ -335,11 +170,13 @@ def _validate(points_3d, points_2d):
         return f"point counts differ: {len(X)} 3D vs {len(u)} 2D"
     if len(X) < 3:
         return f"need at least 3 correspondences, got {len(X)}"
-    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(u))):
+    try:
+        finite, ev = _k.inspect_points(X, u)  # scatter eigenvalues, ascending
+    except np.linalg.LinAlgError:  # overflow to inf in the scatter matrix
+        finite, ev = False, None
+    if not finite:
         return "non-finite (NaN/inf) point coordinates"
-    c = X - X.mean(axis=0)
-    ev = np.linalg.eigvalsh(c.T @ c)  # squared singular values, ascending
-    if ev[2] <= 1e-24 or ev[1] <= 1e-18 * ev[2]:
+    if ev[2] <= 1e-24 or ev[1] <= 1e-12 * ev[2]:  # second axis below 1e-6 of the first
         return "degenerate 3D points: all collinear or coincident"
     return X, u, bool(ev[0] <= 1e-6 * ev[2])  # planar: thickness below 0.1% of the extent
 
@@ -347,10 +184,8 @@ def _validate(points_3d, points_2d):
 def _normalise(camera: Camera, u: np.ndarray):
     """Undistorted normalised coordinates; a direct K^-1 when the lens has no distortion."""
     K = camera.K
-    if not np.any(camera.dist) and K[1, 0] == 0.0:
-        y = (u[:, 1] - K[1, 2]) / K[1, 1]
-        x = (u[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
-        return np.column_stack((x, y))
+    if not camera.dist.any() and K[1, 0] == 0.0:
+        return _k.normalise_pinhole(u, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1])
     try:
         return camera.undistort_points(u)
     except cv2.error:
@@ -368,39 +203,27 @@ def _finish(
 ) -> PoseEstimate:
     """Checks at the solution, RMSE and covariance (J^T W J)^-1 sigma^2."""
     R, t = res["R"], res["t"]
-    pose = Pose(R, t)
-    Xc_z = (R[2] @ prob.XT) + t[2]
-    if np.any(Xc_z <= _MIN_DEPTH):
-        return _fail("points behind the camera at the solution", n_all, method, res["iterations"])
-    wt, r2 = res["wt"], res["r2"]
-    used = wt > 0
-    n_used = int(used.sum())
+    it = res["iterations"]
+    zmin, n_used, sum_r2, cost = _k.solution_stats(prob.X, R, t, res["wt"], res["r2"])
+    if not zmin > _k.MIN_DEPTH:
+        return _fail("points behind the camera at the solution", n_all, method, it)
     if n_used < 3:
-        return _fail("fewer than 3 inliers", n_all, method, res["iterations"])
-    rmse = float(np.sqrt(np.mean(r2[used])))
+        return _fail("fewer than 3 inliers", n_all, method, it)
+    rmse = math.sqrt(sum_r2 / n_used)
     dof = 2 * n_used - 6
     if pixel_sigma is not None:
         s2 = pixel_sigma**2
     elif dof > 0:
-        s2 = float(np.sum(wt * r2)) / dof
+        s2 = cost / dof
     else:
         s2 = default_sigma**2
-    H = res["H"]
     try:
-        ev, V = np.linalg.eigh(H)
-        if not np.all(np.isfinite(ev)) or ev[0] <= 1e-14 * ev[-1]:
-            return _fail(
-                "singular system (degenerate point configuration)", n_all, method, res["iterations"]
-            )
-        cov = (V * (s2 / ev)) @ V.T
-    except np.linalg.LinAlgError:
-        return _fail("singular system at the solution", n_all, method, res["iterations"])
-    if not np.all(np.isfinite(cov)):
-        return _fail("singular system at the solution", n_all, method, res["iterations"])
-    cov = 0.5 * (cov + cov.T)
-    return PoseEstimate(
-        pose, True, "", res["iterations"], rmse, inliers, cov, method, float(np.sqrt(s2))
-    )
+        ok, cov = _k.covariance(res["H"], s2)
+    except np.linalg.LinAlgError:  # non-finite normal equations
+        ok, cov = False, None
+    if not ok:
+        return _fail("singular system (degenerate point configuration)", n_all, method, it)
+    return PoseEstimate(Pose(R, t), True, "", it, rmse, inliers, cov, method, math.sqrt(s2))
 
 
 def _cv_solve(method: str, X, u, camera: Camera, reference_pose: Pose | None):
@@ -584,11 +407,11 @@ def _solve(
     X, u, planar = v
     n = len(X)
     if reference_pose is not None and not (
-        np.all(np.isfinite(reference_pose.R)) and np.all(np.isfinite(reference_pose.t))
+        np.isfinite(reference_pose.R).all() and np.isfinite(reference_pose.t).all()
     ):
         return _fail("reference pose is not finite", n, method)
     xy = _normalise(camera, u)
-    if xy is None or not np.all(np.isfinite(xy)):
+    if xy is None or not np.isfinite(xy).all():
         return _fail("image points could not be undistorted", n, method)
     prob = _Problem(X, xy, camera.fx, camera.fy)
     reject_px = ransac_threshold_px
@@ -760,8 +583,7 @@ def _two_minima_covariance(best: PoseEstimate, alt: PoseEstimate, dcost: float, 
 
 def _from_refine(prob_all, prob_used, res, mask, n, pixel_sigma, default_sigma) -> PoseEstimate:
     inl = mask.copy()
-    idx = np.flatnonzero(mask)
-    inl[idx[res["wt"] <= 0]] = False  # points the robust loss rejected
+    inl[mask] = res["wt"] > 0  # drop the points the robust loss rejected
     return _finish(prob_used, res, n, inl, "mirage-s", pixel_sigma, default_sigma)
 
 
@@ -773,20 +595,20 @@ def _score_fixed(prob, pose, mask, method, thr, pixel_sigma, default_sigma, rans
             return _fail(f"{method}: fewer than 3 inliers at its solution", prob.n, method)
         if not inl.all():
             idx = np.flatnonzero(inl)
-            sub = _Problem(prob.X[idx], prob.obs.reshape(2, -1).T[idx], prob.fx, prob.fy)
+            sub = _Problem(prob.X[idx], prob.xy[idx], prob.fx, prob.fy)
             est = _score_fixed(
                 sub, pose, np.ones(len(idx), bool), method, thr, pixel_sigma, default_sigma, False
             )
             if est.success:
                 est.inliers = inl
             return est
-    e, e2, r2, iz, zmin = prob.residuals(pose.R, pose.t)
-    if e is None:
-        return _fail(f"{method}: points behind the camera at its solution", prob.n, method)
-    if not np.all(np.isfinite(r2)):
+    e, r2, pred, iz, zmin = prob.residuals(pose.R, pose.t)
+    if not np.all(np.isfinite(r2)) or not np.isfinite(zmin):
         return _fail(f"{method} gave a non-finite pose", prob.n, method)
+    if zmin <= _k.MIN_DEPTH:
+        return _fail(f"{method}: points behind the camera at its solution", prob.n, method)
     inl = (r2 <= thr**2) & mask if ransac else mask.copy()
     wt = inl.astype(float)
-    H, _ = prob.normal_equations(iz, wt, e)
+    H, _ = prob.normal_equations(pred, iz, wt, e)
     res = {"R": pose.R, "t": pose.t, "r2": r2, "wt": wt, "H": H, "iterations": 1}
     return _finish(prob, res, prob.n, inl, method, pixel_sigma, default_sigma)
