@@ -31,6 +31,8 @@ def _jit(f):
         return njit(f)
 
 
+FREEZE_WEIGHTS_AFTER = 20  # iterations
+
 # status codes of `refine`, mapped to reasons by the solver
 OK = 0
 BEHIND_AT_START = 1
@@ -235,7 +237,10 @@ def refine(X, obs, fx, fy, R0, t0, max_iterations, use_robust, huber_px, reject_
     iterations = 0
     for it in range(1, max_iterations + 1):
         iterations = it
-        robust_weights(r2s[cur], use_robust, huber_px, reject_px, wt)
+        if it <= FREEZE_WEIGHTS_AFTER:
+            # IRLS can cycle between weight sets on a few points (seen on tilted planar
+            # targets); with the weights fixed it is plain weighted least squares and converges
+            robust_weights(r2s[cur], use_robust, huber_px, reject_px, wt)
         normal_equations(fx, fy, ps[cur], izs[cur], wt, es[cur], H, g)
         cost0 = _dot(wt, r2s[cur])
         ka, kb = (cur + 1) % 3, (cur + 2) % 3

@@ -338,6 +338,7 @@ def solve_pose(
     ransac_confidence: float = 0.999,
     tol: float = 1e-6,
     max_rmse_px: float | None = None,
+    reference_sigma_deg: float = 10.0,
 ) -> PoseEstimate:
     """Pose T_CW of a camera from n >= 3 world points and their pixels.
 
@@ -353,6 +354,8 @@ def solve_pose(
     (sum w r^2 / (2n - 6)), falling back to `default_pixel_sigma` when n = 3 (no redundancy).
     max_rmse_px: optional gate; a solution whose inlier reprojection RMSE (per-point 2D
     error, px) exceeds it is reported as a failure instead of a doubtful pose.
+    reference_sigma_deg: how far (1 sigma, rotation) the reference may be from the truth;
+    it weighs the two minima of a planar target (see `_resolve_planar`).
     Never raises for bad numeric input: failures come back with success=False and a reason.
     """
     args = {k: v for k, v in locals().items() if k != "max_rmse_px"}
@@ -394,6 +397,7 @@ def _solve(
     ransac_iterations: int,
     ransac_confidence: float,
     tol: float,
+    reference_sigma_deg: float,
 ) -> PoseEstimate:
     """The body of `solve_pose` (see there for the arguments and their defaults)."""
     method = str(method).lower()
@@ -480,49 +484,57 @@ def _solve(
             best = est
         if reference_pose is not None and best is est:
             break  # the reference start succeeded: its basin is the one we want
-    if best is None:
-        return _fail(reason, n, method)
-    if planar and reference_pose is not None and best.rmse_px > 0.0:
-        best = _other_minimum(
+    if planar and reference_pose is not None:
+        # the planar flip: weigh both minima even when the reference start failed
+        refine_opts = (max_iterations, robust, huber_px, reject_px, tol)
+        best = _resolve_planar(
             best,
-            planar,
             X,
             u,
             xy,
             mask,
             camera,
-            robust,
-            huber_px,
-            reject_px,
-            max_iterations,
-            tol,
+            reference_pose,
+            reference_sigma_deg,
+            refine_opts,
             pixel_sigma,
             default_pixel_sigma,
         )
+    if best is None:
+        return _fail(reason, n, method)
     return best
 
 
-def _other_minimum(
+_SAME_MINIMUM_DEG = 0.1
+
+
+def _resolve_planar(
     best,
-    planar,
     X,
     u,
     xy,
     mask,
     camera,
-    robust,
-    huber_px,
-    reject_px,
-    max_iterations,
-    tol,
+    reference,
+    reference_sigma_deg,
+    refine_opts,
     pixel_sigma,
     default_sigma,
-) -> PoseEstimate:
-    """Few points or a planar target leave a second nearby minimum (P3P roots, the planar
-    flip) and the reference can sit in its basin.  Refine from the global solutions too (IPPE's
-    two planar poses, or SQPnP) and switch only if that minimum is significantly better, so
-    that with comparable costs the reference still decides."""
-    m = best.inliers if best.inliers.sum() >= 4 else mask
+) -> PoseEstimate | None:
+    """A planar target has two minima (the flip), and near fronto-parallel both explain the
+    pixels almost equally, so a pick by cost alone (or by the reference's basin alone) is
+    wrong in a few percent of scenes, each time by tens of degrees.
+
+    Refine from IPPE's two planar solutions as well, then weigh the distinct minima by their
+    posterior: likelihood exp(-cost / 2 sigma^2), with cost the plain squared pixel error
+    over the same points (all of `mask`, also those a minimum's robust loss rejected, so a
+    minimum cannot look cheap by rejecting points), times a Gaussian prior of width
+    `reference_sigma_deg` on the rotation from the reference.  Return the minimum-mean-
+    square-error pose, the most probable minimum moved toward the other by the other's
+    probability p, with the mixture's covariance (1-p) C_a + p C_b + p (1-p) d d^T.
+    Unambiguous scenes have p ~ 0 and get the most probable minimum unchanged.
+    """
+    m = mask
     if m.sum() < 4:
         return best
     try:
@@ -531,54 +543,48 @@ def _other_minimum(
             np.ascontiguousarray(u[m]),
             camera.K,
             camera.dist,
-            flags=cv2.SOLVEPNP_IPPE if planar else cv2.SOLVEPNP_SQPNP,
+            flags=cv2.SOLVEPNP_IPPE,
         )
     except cv2.error:
         return best
     prob = _Problem(X[m], xy[m], camera.fx, camera.fy)
+    cands = [best] if best is not None else []
     for rv, tv in zip(rvecs, tvecs, strict=False):
-        if not (np.all(np.isfinite(rv)) and np.all(np.isfinite(tv))):
+        if not (np.isfinite(rv).all() and np.isfinite(tv).all()):
             continue
         start = Pose.from_rvec_tvec(np.ravel(rv), np.ravel(tv))
-        if start.angle_to(best.pose) < 0.5:
+        if any(start.angle_to(c.pose) < _SAME_MINIMUM_DEG for c in cands):
             continue
-        res = _refine(prob, start, max_iterations, robust, huber_px, reject_px, tol)
+        res = _refine(prob, start, *refine_opts)
         if isinstance(res, str):
             continue
-        alt = _from_refine(None, prob, res, m, len(X), pixel_sigma, default_sigma)
-        if not alt.success or alt.pose.angle_to(best.pose) <= 0.5:
-            continue
-        # switch only if the other minimum is significantly better: the cost drop exceeds
-        # 9 sigma^2 (sigma^2 from the alternative's residuals; noise-free: any drop)
-        k = int(m.sum())
-        c_alt, c_best = alt.rmse_px**2 * k, best.rmse_px**2 * int(best.inliers.sum())
-        s2 = max(c_alt, c_best) / max(2 * k - 6, 1)
-        if c_best - c_alt > 9.0 * c_alt / max(2 * k - 6, 1):
-            best, alt = alt, best
-            c_best, c_alt = c_alt, c_best
-        best = _two_minima_covariance(best, alt, c_alt - c_best, s2)
-    return best
-
-
-def _two_minima_covariance(best: PoseEstimate, alt: PoseEstimate, dcost: float, s2: float):
-    """Widen the covariance by the other minimum in proportion to its likelihood.
-
-    When the second minimum (the planar flip) explains the pixels almost as well, the
-    solution's error is not Gaussian around the chosen pose: with probability
-    p = L_alt / (L_best + L_alt) the truth sits near the other one. The moments of that
-    two-mode distribution, (1-p) C_best + p C_alt + p (1-p) d d^T, keep sigma honest.
-    """
-    if s2 <= 0.0 or not np.isfinite(dcost):
-        return best
-    r = math.exp(-min(max(dcost, 0.0) / (2.0 * s2), 700.0))
-    p = r / (1.0 + r)
-    if p < 1e-6:
-        return best
-    w = rotvec(alt.pose.R @ best.pose.R.T)  # left perturbation taking best to alt
-    d = np.concatenate([w, alt.pose.t - rodrigues(w) @ best.pose.t])
-    cov = (1.0 - p) * best.covariance + p * alt.covariance + p * (1.0 - p) * np.outer(d, d)
-    best.covariance = 0.5 * (cov + cov.T)
-    return best
+        est = _from_refine(None, prob, res, m, len(X), pixel_sigma, default_sigma)
+        if est.success and all(est.pose.angle_to(c.pose) >= _SAME_MINIMUM_DEG for c in cands):
+            cands.append(est)
+    if len(cands) < 2:
+        return cands[0] if cands else None
+    k = int(m.sum())
+    cost = np.array([float(np.sum(prob.point_r2(c.pose.R, c.pose.t))) for c in cands])
+    if pixel_sigma is not None:
+        s2 = pixel_sigma**2
+    else:
+        s2 = max(float(cost.min()) / max(2 * k - 6, 1), 1e-30)
+    theta = np.array([c.pose.angle_to(reference) for c in cands])  # deg
+    log_p = -cost / (2.0 * s2) - theta**2 / (2.0 * reference_sigma_deg**2)
+    order = np.argsort(-log_p)
+    a, b = cands[order[0]], cands[order[1]]
+    p = 1.0 / (1.0 + math.exp(min(log_p[order[0]] - log_p[order[1]], 700.0)))
+    if not p > 1e-6:
+        return a
+    w = rotvec(b.pose.R @ a.pose.R.T)  # left perturbation taking a to b
+    d = np.concatenate([w, b.pose.t - rodrigues(w) @ a.pose.t])
+    R = rodrigues(p * w) @ a.pose.R
+    pose = Pose.from_center(R.T, (1.0 - p) * a.pose.center + p * b.pose.center)
+    cov = (1.0 - p) * a.covariance + p * b.covariance + p * (1.0 - p) * np.outer(d, d)
+    r2 = prob.point_r2(pose.R, pose.t)[a.inliers[m]]
+    a.pose, a.covariance = pose, 0.5 * (cov + cov.T)
+    a.rmse_px = float(np.sqrt(np.mean(r2)))
+    return a
 
 
 def _from_refine(prob_all, prob_used, res, mask, n, pixel_sigma, default_sigma) -> PoseEstimate:
