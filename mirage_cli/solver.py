@@ -355,7 +355,7 @@ def solve_pose(
     max_rmse_px: optional gate; a solution whose inlier reprojection RMSE (per-point 2D
     error, px) exceeds it is reported as a failure instead of a doubtful pose.
     reference_sigma_deg: how far (1 sigma, rotation) the reference may be from the truth;
-    it weighs the two minima of a planar target (see `_resolve_planar`).
+    it weighs the two minima of a planar target (see `_resolve_ambiguity`).
     Never raises for bad numeric input: failures come back with success=False and a reason.
     """
     args = {k: v for k, v in locals().items() if k != "max_rmse_px"}
@@ -484,10 +484,11 @@ def _solve(
             best = est
         if reference_pose is not None and best is est:
             break  # the reference start succeeded: its basin is the one we want
-    if planar and reference_pose is not None:
-        # the planar flip: weigh both minima even when the reference start failed
+    if reference_pose is not None and (planar or 4 <= mask.sum() <= _FEW_POINTS):
+        # the planar flip or a P3P-like second root: weigh the other minima too (even when
+        # the reference start failed)
         refine_opts = (max_iterations, robust, huber_px, reject_px, tol)
-        best = _resolve_planar(
+        best = _resolve_ambiguity(
             best,
             X,
             u,
@@ -499,6 +500,7 @@ def _solve(
             refine_opts,
             pixel_sigma,
             default_pixel_sigma,
+            planar,
         )
     if best is None:
         return _fail(reason, n, method)
@@ -506,9 +508,38 @@ def _solve(
 
 
 _SAME_MINIMUM_DEG = 0.1
+_FEW_POINTS = 5  # up to here a non-planar scene can hold a second minimum near the first
 
 
-def _resolve_planar(
+def _global_starts(X, u, camera: Camera, planar: bool) -> list[Pose]:
+    """Poses from OpenCV's global solvers, one in each basin that could hold the answer:
+    IPPE's two planar solutions, or SQPnP plus every P3P root of the three points spanning
+    the largest image triangle."""
+    runs = [(X, u, cv2.SOLVEPNP_IPPE)] if planar else [(X, u, cv2.SOLVEPNP_SQPNP)]
+    if not planar:
+        tri = np.array([(i, j, k) for i in range(len(X)) for j in range(i) for k in range(j)])
+        a, b = u[tri[:, 1]] - u[tri[:, 0]], u[tri[:, 2]] - u[tri[:, 0]]
+        best = tri[np.argmax(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]))]
+        runs.append((X[best], u[best], cv2.SOLVEPNP_AP3P))
+    poses = []
+    for Xs, us, flag in runs:
+        try:
+            _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+                np.ascontiguousarray(Xs),
+                np.ascontiguousarray(us),
+                camera.K,
+                camera.dist,
+                flags=flag,
+            )
+        except cv2.error:
+            continue
+        for rv, tv in zip(rvecs, tvecs, strict=False):
+            if np.isfinite(rv).all() and np.isfinite(tv).all():
+                poses.append(Pose.from_rvec_tvec(np.ravel(rv), np.ravel(tv)))
+    return poses
+
+
+def _resolve_ambiguity(
     best,
     X,
     u,
@@ -520,39 +551,30 @@ def _resolve_planar(
     refine_opts,
     pixel_sigma,
     default_sigma,
+    planar,
 ) -> PoseEstimate | None:
     """A planar target has two minima (the flip), and near fronto-parallel both explain the
     pixels almost equally, so a pick by cost alone (or by the reference's basin alone) is
-    wrong in a few percent of scenes, each time by tens of degrees.
+    wrong in a few percent of scenes, each time by tens of degrees; 4-5 points in space can
+    likewise hold a second minimum, and a reference far enough off sits in its basin.
 
-    Refine from IPPE's two planar solutions as well, then weigh the distinct minima by their
-    posterior: likelihood exp(-cost / 2 sigma^2), with cost the plain squared pixel error
-    over the same points (all of `mask`, also those a minimum's robust loss rejected, so a
-    minimum cannot look cheap by rejecting points), times a Gaussian prior of width
-    `reference_sigma_deg` on the rotation from the reference.  Return the minimum-mean-
-    square-error pose, the most probable minimum moved toward the other by the other's
-    probability p, with the mixture's covariance (1-p) C_a + p C_b + p (1-p) d d^T.
+    Refine from the global solvers' poses as well (`_global_starts`), then weigh the
+    distinct minima by their posterior: likelihood exp(-cost / 2 sigma^2), with cost the
+    plain squared pixel error over the same points (all of `mask`, also those a minimum's
+    robust loss rejected, so a minimum cannot look cheap by rejecting points), times a
+    Gaussian prior of width `reference_sigma_deg` on the rotation from the reference.
+    For the planar flip, return the minimum-mean-square-error pose, the most probable
+    minimum moved toward the other by the other's probability p, with the mixture's
+    covariance (1-p) C_a + p C_b + p (1-p) d d^T; with few points in space (where blending
+    measured slightly worse) the most probable minimum.
     Unambiguous scenes have p ~ 0 and get the most probable minimum unchanged.
     """
     m = mask
     if m.sum() < 4:
         return best
-    try:
-        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            np.ascontiguousarray(X[m]),
-            np.ascontiguousarray(u[m]),
-            camera.K,
-            camera.dist,
-            flags=cv2.SOLVEPNP_IPPE,
-        )
-    except cv2.error:
-        return best
     prob = _Problem(X[m], xy[m], camera.fx, camera.fy)
     cands = [best] if best is not None else []
-    for rv, tv in zip(rvecs, tvecs, strict=False):
-        if not (np.isfinite(rv).all() and np.isfinite(tv).all()):
-            continue
-        start = Pose.from_rvec_tvec(np.ravel(rv), np.ravel(tv))
+    for start in _global_starts(X[m], u[m], camera, planar):
         if any(start.angle_to(c.pose) < _SAME_MINIMUM_DEG for c in cands):
             continue
         res = _refine(prob, start, *refine_opts)
@@ -578,6 +600,10 @@ def _resolve_planar(
         return a
     w = rotvec(b.pose.R @ a.pose.R.T)  # left perturbation taking a to b
     d = np.concatenate([w, b.pose.t - rodrigues(w) @ a.pose.t])
+    if not planar:  # blending measured better only for the planar flip: keep the mode
+        cov = (1.0 - p) * a.covariance + p * b.covariance + p * np.outer(d, d)
+        a.covariance = 0.5 * (cov + cov.T)
+        return a
     R = rodrigues(p * w) @ a.pose.R
     pose = Pose.from_center(R.T, (1.0 - p) * a.pose.center + p * b.pose.center)
     cov = (1.0 - p) * a.covariance + p * b.covariance + p * (1.0 - p) * np.outer(d, d)

@@ -97,7 +97,9 @@ def crb_ratios(n, planar, trials, seed, methods=("mirage-s",), sigma=1.0, offset
 def test_noise_free_from_30_degrees(n, planar):
     rng = np.random.default_rng(100 + n + planar)
     its = []
-    for _ in range(10):
+    # 4-5 points in space can hold a second minimum that a 30-deg-off reference may sit in
+    # (~0.3% of scenes): enough scenes to catch it
+    for _ in range(1000 if n <= 5 and not planar else 30):
         X, truth, ref = scene(rng, n, planar, 30.0)
         est = solve_pose(X, CAM.project(X, truth), CAM, ref)
         assert est.success, est.reason
