@@ -370,8 +370,8 @@ def main(argv=None) -> int:
         ransac=True,
     )
     outliers_vs_clean(rng, trials)
-    planar_tail(rng, 200 if args.quick else 1500)
-    speed(rng)
+    planar_tail(rng, 200 if args.quick else 5000)
+    speed(rng, reps=1000)
     honesty(rng, 200 if args.quick else 1000)
     print(f"\n(total {time.perf_counter() - t_start:.0f} s)")
     return 0

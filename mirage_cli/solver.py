@@ -559,7 +559,8 @@ def _resolve_ambiguity(
     likewise hold a second minimum, and a reference far enough off sits in its basin.
 
     Refine from the global solvers' poses as well (`_global_starts`), then weigh the
-    distinct minima by their posterior: likelihood exp(-cost / 2 sigma^2), with cost the
+    distinct minima by their posterior mass (Laplace approximation: likelihood times
+    sqrt(det C) of the minimum): likelihood exp(-cost / 2 sigma^2), with cost the
     plain squared pixel error over the same points (all of `mask`, also those a minimum's
     robust loss rejected, so a minimum cannot look cheap by rejecting points), times a
     Gaussian prior of width `reference_sigma_deg` on the rotation from the reference.
@@ -592,7 +593,10 @@ def _resolve_ambiguity(
     else:
         s2 = max(float(cost.min()) / max(2 * k - 6, 1), 1e-30)
     theta = np.array([c.pose.angle_to(reference) for c in cands])  # deg
-    log_p = -cost / (2.0 * s2) - theta**2 / (2.0 * reference_sigma_deg**2)
+    # Laplace approximation of each minimum's posterior mass: peak height times the volume
+    # of its basin, sqrt(det C) (a flatter minimum holds more probability)
+    log_det = np.array([np.linalg.slogdet(c.covariance)[1] for c in cands])
+    log_p = -cost / (2.0 * s2) - theta**2 / (2.0 * reference_sigma_deg**2) + 0.5 * log_det
     order = np.argsort(-log_p)
     a, b = cands[order[0]], cands[order[1]]
     p = 1.0 / (1.0 + math.exp(min(log_p[order[0]] - log_p[order[1]], 700.0)))

@@ -220,7 +220,7 @@ def test_tilted_planar_irls_converges():
     cam = Camera.from_params(1280, 720, 1000.0)
     est = solve_pose(X, u, cam, ref)
     assert est.success and est.pose.angle_to(truth) < 1.0, (est.reason, est.pose)
-    assert est.rmse_px < 1.5
+    assert est.rmse_px < 2.5  # the flip minimum: 6.6 px
 
 
 def test_outliers_with_ransac_match_clean_inliers():
