@@ -484,7 +484,7 @@ def _solve(
             best = est
         if reference_pose is not None and best is est:
             break  # the reference start succeeded: its basin is the one we want
-    if reference_pose is not None and (planar or 4 <= mask.sum() <= _FEW_POINTS):
+    if reference_pose is not None and (planar or (n <= _FEW_POINTS and mask.sum() >= 4)):
         # the planar flip or a P3P-like second root: weigh the other minima too (even when
         # the reference start failed)
         refine_opts = (max_iterations, robust, huber_px, reject_px, tol)
