@@ -405,6 +405,8 @@ def _solve(
         return _fail(f"unknown method '{method}' (choose from {', '.join(METHODS)})", 0, method)
     if robust not in ("huber", "none"):
         return _fail(f"unknown robust loss '{robust}' (huber or none)", 0, method)
+    if not reference_sigma_deg > 0.0:
+        return _fail(f"reference_sigma_deg must be > 0, got {reference_sigma_deg}", 0, method)
     v = _validate(points_3d, points_2d)
     if isinstance(v, str):
         return _fail(v, _count(points_3d), method)

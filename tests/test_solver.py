@@ -363,6 +363,7 @@ def test_degenerate_inputs(method):
     _assert_fails(solve_pose(same, u[:6], CAM, ref, method=method), "collinear")
     _assert_fails(solve_pose(X, u[:5], CAM, ref, method=method), "counts differ")
     _assert_fails(solve_pose(X, u, CAM, ref, method="nope"), "unknown method")
+    _assert_fails(solve_pose(X, u, CAM, ref, reference_sigma_deg=0.0), "reference_sigma_deg")
     _assert_fails(solve_pose("abc", u, CAM, ref, method=method), "numeric")
 
 
