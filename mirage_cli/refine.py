@@ -15,6 +15,7 @@ left perturbation T <- exp([w, v]) T in the camera frame.
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 from numba import njit
@@ -376,3 +377,12 @@ def covariance(H, s2):
             C[a, b] = s * s2
             C[b, a] = C[a, b]
     return bool(np.all(np.isfinite(C))), C
+
+
+def cached_on_disk() -> bool:
+    """Whether the compiled solver is in numba's on-disk cache; if not, the first solve in
+    this process compiles it (~8 s), which the CLI announces.  True when unknown."""
+    try:
+        return os.path.exists(refine._cache._cache_file._index_path)
+    except AttributeError:  # caching unavailable, or numba internals moved
+        return True

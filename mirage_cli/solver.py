@@ -650,3 +650,12 @@ def _score_fixed(prob, pose, mask, method, thr, pixel_sigma, default_sigma, rans
     H, _ = prob.normal_equations(pred, iz, wt, e)
     res = {"R": pose.R, "t": pose.t, "r2": r2, "wt": wt, "H": H, "iterations": 1}
     return _finish(prob, res, prob.n, inl, method, pixel_sigma, default_sigma)
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the kernels of the common Mirage-S path, so that a
+    caller can do it up front instead of inside its first timed frame."""
+    X = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2], [0.2, 0.2, 0.1], [0.1, 0, 0.2]])
+    cam = Camera.from_params(640, 480, 500.0)
+    truth = Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
+    solve_pose(X, cam.project(X, truth), cam, Pose(np.eye(3), np.array([0.01, 0.0, 2.0])))

@@ -11,14 +11,14 @@ import click
 import cv2
 import numpy as np
 
-from . import ui
+from . import refine, ui
 from .camera import Camera
 from .errors import InputError, OutputError
 from .fileio import atomic_path, atomic_write, check_writable, require_file
 from .media import read_image, resolve_inputs
 from .model import LandmarkModel
 from .posecsv import PoseCSVWriter
-from .solver import METHODS
+from .solver import METHODS, warm_up
 from .track import FrameResult, Tracker, TrackSettings
 
 DIAG = ["keyframe", "matches", "inliers", "reproj_rmse_px", "iterations", "sigma_pos_m",
@@ -285,6 +285,9 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
+    if not refine.cached_on_disk():
+        ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
+    warm_up()  # compile or load it before the first frame's clock starts
     first, last = parse_when(start, src.fps), parse_when(end, src.fps, "--end")
     axis_m = float(np.ptp(model.points, axis=0).max() * 0.4) if len(model.points) else 0.2
 
