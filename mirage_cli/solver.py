@@ -640,10 +640,10 @@ def _score_fixed(prob, pose, mask, method, thr, pixel_sigma, default_sigma, rans
             if est.success:
                 est.inliers = inl
             return est
-    e, r2, pred, iz, zmin = prob.residuals(pose.R, pose.t)
-    if not np.all(np.isfinite(r2)) or not np.isfinite(zmin):
+    if not (np.isfinite(pose.R).all() and np.isfinite(pose.t).all()):
         return _fail(f"{method} gave a non-finite pose", prob.n, method)
-    if zmin <= _k.MIN_DEPTH:
+    e, r2, pred, iz, zmin = prob.residuals(pose.R, pose.t)
+    if zmin <= _k.MIN_DEPTH:  # (residuals of such points are not computed)
         return _fail(f"{method}: points behind the camera at its solution", prob.n, method)
     inl = (r2 <= thr**2) & mask if ransac else mask.copy()
     wt = inl.astype(float)
