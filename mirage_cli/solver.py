@@ -5,9 +5,11 @@ explains the pixel differences between observed and predicted points by a small 
 transform E, actual = exp(E) * current.  Each point gives two linear equations in the six
 parameters of E (rotation vector w, translation v, both in the camera frame); the 2n x 6
 system is solved by weighted least squares, E is composed on the left and the projection is
-re-linearised until the update is tiny.  Starting from the reference resolves the ambiguities
-(P3P's up to four roots, the planar two-fold flip) that make global solvers fail with few
-points, and the same normal equations give the pose covariance for free.
+re-linearised until the update is tiny.  The reference decides the ambiguities (P3P's up to
+four roots, the planar two-fold flip) that make global solvers fail with few points; where a
+second minimum can lie near the first (planar targets, 4-5 points) the global solutions are
+refined too and every minimum is weighed against the reference (`_resolve_ambiguity`).  The
+same normal equations give the pose covariance for free.
 
 Everything here is pure computation: no file or terminal I/O, and no exception escapes
 from numpy or OpenCV -- every failure is a `PoseEstimate` with success=False and a reason,
