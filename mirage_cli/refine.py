@@ -45,7 +45,8 @@ NOT_CONVERGED = 4
 @_jit
 def residuals(X, obs, fx, fy, R, t, e, r2, pred, iz):
     """Normalised residuals e (n, 2), per-point squared pixel error r2; the predicted points
-    and inverse depths are kept for the Jacobian.  Returns the smallest depth."""
+    and inverse depths are kept for the Jacobian.  Returns the smallest depth; points at or
+    behind MIN_DEPTH are skipped (their entries left unset), so callers check it first."""
     zmin = np.inf
     for i in range(X.shape[0]):
         x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]

@@ -103,6 +103,7 @@ class _Problem:
         predicted points and inverse depths; only meaningful when zmin > MIN_DEPTH."""
         n = self.n
         e, r2, pred, iz = np.empty((n, 2)), np.empty(n), np.empty((n, 2)), np.empty(n)
+        R, t = np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64)
         zmin = _k.residuals(self.X, self.xy, self.fx, self.fy, R, t, e, r2, pred, iz)
         return e, r2, pred, iz, zmin
 
@@ -650,7 +651,8 @@ def _score_fixed(prob, pose, mask, method, thr, pixel_sigma, default_sigma, rans
     inl = (r2 <= thr**2) & mask if ransac else mask.copy()
     wt = inl.astype(float)
     H, _ = prob.normal_equations(pred, iz, wt, e)
-    res = {"R": pose.R, "t": pose.t, "r2": r2, "wt": wt, "H": H, "iterations": 1}
+    R, t = np.ascontiguousarray(pose.R), np.ascontiguousarray(pose.t)  # one compiled layout
+    res = {"R": R, "t": t, "r2": r2, "wt": wt, "H": H, "iterations": 1}
     return _finish(prob, res, prob.n, inl, method, pixel_sigma, default_sigma)
 
 
