@@ -94,3 +94,18 @@ def read_yaml(path: Path, what: str):
         raise InputError(f"{what} {path} is not valid YAML{where}") from None
     except UnicodeDecodeError:
         raise InputError(f"{what} {path} is not a text file") from None
+
+
+def read_csv(path: Path, what: str, expected: str, **kw):
+    """pandas.read_csv with the project's one-line errors (empty file, unreadable CSV) and
+    stripped column names; `expected` says what the header should be."""
+    import pandas as pd
+
+    try:
+        df = pd.read_csv(path, skipinitialspace=True, **kw)
+    except pd.errors.EmptyDataError:
+        raise InputError(f"{what} {path} is empty (expected {expected})") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as e:
+        raise InputError(f"{what} {path} is not a readable CSV: {str(e).strip()}") from None
+    df.columns = [str(c).strip() for c in df.columns]
+    return df

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import InputError
-from .fileio import read_yaml, require_file
+from .fileio import read_csv, read_yaml, require_file
 
 PATH_TYPES = ("circle", "polyline")
 
@@ -228,15 +228,7 @@ def path_from_dict(data: dict, where: str = "path") -> Path_:
 
 
 def _polyline_csv(p: Path) -> PolylinePath:
-    try:
-        df = pd.read_csv(p, skipinitialspace=True)
-    except pd.errors.EmptyDataError:
-        raise InputError(
-            f"path file {p} is empty (expected a header x_m,y_m,z_m[,time_s])"
-        ) from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as e:
-        raise InputError(f"path file {p} is not a readable CSV: {str(e).strip()}") from None
-    df.columns = [str(c).strip() for c in df.columns]
+    df = read_csv(p, "path file", "a header x_m,y_m,z_m[,time_s]")
     missing = [c for c in ("x_m", "y_m", "z_m") if c not in df.columns]
     if missing:
         raise InputError(f"path file {p}: missing waypoint column(s) {', '.join(missing)}")

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import InputError
-from .fileio import check_writable, require_file
+from .fileio import check_writable, read_csv, require_file
 from .pose import R_CB, Pose
 
 POSE_COLUMNS = [
@@ -111,15 +111,8 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
     columns recomputed from the quaternion. Every problem names the column and row.
     """
     p = require_file(path, "pose file")
-    try:
-        df = pd.read_csv(p, dtype=str, keep_default_na=False, skipinitialspace=True)
-    except pd.errors.EmptyDataError:
-        raise InputError(
-            f"pose file {p} is empty (expected a header row: {','.join(POSE_COLUMNS[:10])})"
-        ) from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as e:
-        raise InputError(f"pose file {p} is not a readable CSV: {str(e).strip()}") from None
-    df.columns = [c.strip() for c in df.columns]
+    header = f"a header row: {','.join(POSE_COLUMNS[:10])}"
+    df = read_csv(p, "pose file", header, dtype=str, keep_default_na=False)
     if "frame" not in df.columns:
         if "image" not in df.columns:
             raise InputError(
