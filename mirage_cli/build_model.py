@@ -31,7 +31,7 @@ from .camera import Camera
 from .errors import InputError
 from .features import DetectorSettings, detect, make_detector, ratio_match
 from .fileio import read_yaml, require_file
-from .media import iter_video, read_image, resolve_inputs, video_info
+from .frames import FrameSource, read_image, resolve_inputs
 from .model import Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
 from .pose import Pose, matrix_from_rpy
 from .posecsv import poses_by_frame, read_pose_csv
@@ -405,9 +405,9 @@ def _need_two(views: list, what: str) -> None:
 
 
 def _views_from_video(video, camera, settings, poses_csv, board, progress) -> list[View]:
-    info = video_info(video)
-    if (info.width, info.height) != camera.size:
-        _check_size(np.zeros((info.height, info.width), np.uint8), camera, f"video {video.name}")
+    src = FrameSource([video])
+    if src.size != camera.size:
+        _check_size(np.zeros(src.size[::-1], np.uint8), camera, f"video {video.name}")
     if poses_csv is not None:
         known = poses_by_frame(read_pose_csv(poses_csv))
         frames = {}
@@ -425,12 +425,12 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
         _need_two(sel, "video frames with a pose")
         wanted = set(sel)
         got: dict[int, np.ndarray] = {}
-        for i, _, frame in iter_video(video, 1, gray=True):
-            if i in wanted:
+        for i, _, _, frame in src.frames(end=max(wanted) + 1, gray=True):
+            if i in wanted and frame is not None:
                 got[i] = frame
                 if progress:
                     progress(len(got), len(wanted))
-            if len(got) == len(wanted) or i > max(wanted):
+            if len(got) == len(wanted):
                 break
         lost = sorted(wanted - set(got))
         if lost:
@@ -439,11 +439,11 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
         _need_two(views, "readable video frames with a pose")
         return views
     poser = BoardPoser(board, camera)
-    step = max(1, -(-info.frames // settings.max_video_frames)) if info.frames else 1
+    step = max(1, -(-src.count // settings.max_video_frames)) if src.count else 1
     cand: list[View] = []
     bad = 0
-    for i, _, frame in iter_video(video, step, gray=True):
-        pose, _ = poser.pose(frame)
+    for i, _, _, frame in src.frames(every=step, gray=True):
+        pose, _ = poser.pose(frame) if frame is not None else (None, "")
         if pose is None:
             bad += 1
         else:
@@ -452,7 +452,7 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
             if len(cand) > 4 * 360 / settings.spacing_deg:
                 cand = [cand[j] for j in select_keyframes([v.pose for v in cand], 1.0)]
         if progress:
-            progress(i // step + 1, max(1, info.frames // step))
+            progress(i // step + 1, max(1, src.count // step))
     if bad:
         log.warning(f"{bad} sampled frame(s) of {video.name} skipped: no reliable board pose")
     _need_two(cand, "video frames where the board gives a reliable pose")

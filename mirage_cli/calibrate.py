@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from .errors import InputError, cv_message
-from .media import iter_video, read_image
+from .frames import FrameSource, read_image
 
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -320,18 +320,26 @@ def detect_video(
     Near-duplicate views add no information but weight that pose more than others.
     """
     workers = default_workers() if workers is None else max(1, workers)
+    src = FrameSource([path])
+    unreadable: list[str] = []
 
-    def one(item):
-        index, t, frame = item
-        return index, t, find_corners(frame, board, subpix_window)
+    def decoded(frames):
+        for f in frames:
+            if f.image is None:  # a damaged stretch: counted, and decoding goes on after it
+                unreadable.append(f"frame {f.index}")
+                if progress:
+                    progress(1)
+            else:
+                yield f
+
+    def one(f):
+        return f.index, f.time_s, find_corners(f.image, board, subpix_window)
 
     found: list[View] = []
     not_found: list[str] = []
-    size = None
     examined = 0
     with ThreadPoolExecutor(workers) as pool:
-        for chunk in _chunks(iter_video(path, every=every, gray=True), 4 * workers):
-            size = size or chunk[0][2].shape[::-1]
+        for chunk in _chunks(decoded(src.frames(every=every, gray=True)), 4 * workers):
             for index, t, res in pool.map(one, chunk):
                 examined += 1
                 if progress:
@@ -340,7 +348,7 @@ def detect_video(
                     not_found.append(f"frame {index}")
                 else:
                     found.append(View(f"frame {index}", *res, frame=index, time_s=t))
-    if size is None:
+    if examined == 0:
         raise InputError(f"video {path} has no readable frames")
     views, last = [], None
     for v in found:
@@ -348,7 +356,16 @@ def detect_video(
             continue
         views.append(v)
         last = v
-    return Detections(views, size, examined, not_found, duplicates=len(found) - len(views))
+    warnings = [f"skipped {len(unreadable)} undecodable frame(s)"] if unreadable else []
+    return Detections(
+        views,
+        src.size,
+        examined + len(unreadable),
+        not_found,
+        unreadable,
+        duplicates=len(found) - len(views),
+        warnings=warnings,
+    )
 
 
 def _motion_px(a: View, b: View) -> float:

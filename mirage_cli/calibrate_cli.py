@@ -12,7 +12,7 @@ from .calibrate import Board, CalibOptions, Calibration, Detections, detect_imag
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
 from .fileio import atomic_path, check_writable
-from .media import resolve_inputs, video_info
+from .frames import FrameSource, resolve_inputs
 
 _K_NAMES = ("fx", "fy", "cx", "cy")
 
@@ -178,7 +178,7 @@ def calibrate(
     )
     media = resolve_inputs(inputs, what="board images")
     if media.is_video:
-        n = video_info(media.video).frames
+        n = FrameSource([media.video]).count
         with ui.progress((n + every - 1) // every if n else None, "detecting") as bar:
             det = detect_video(
                 media.video, target, every, min_motion, workers, bar.update, subpix_window

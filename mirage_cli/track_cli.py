@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import click
@@ -15,7 +14,7 @@ from . import refine, ui
 from .camera import Camera
 from .errors import InputError, OutputError
 from .fileio import atomic_path, atomic_write, check_writable, require_file
-from .media import read_image, resolve_inputs
+from .frames import FrameSource, matching_camera
 from .model import LandmarkModel
 from .posecsv import PoseCSVWriter
 from .solver import METHODS, warm_up
@@ -23,96 +22,6 @@ from .track import FrameResult, Tracker, TrackSettings
 
 DIAG = ["keyframe", "matches", "inliers", "reproj_rmse_px", "iterations", "sigma_pos_m",
         "sigma_rot_deg", "ms", "mode"]  # fmt: skip
-
-
-# --------------------------------------------------------------------------------------
-# frame sources
-# --------------------------------------------------------------------------------------
-class FrameSource:
-    """Frames of a video or an image folder: (id, time_s, BGR image or None if undecodable)."""
-
-    def __init__(self, inputs: list[str]):
-        media = resolve_inputs(inputs, "a video or images")
-        self.video = media.video
-        self.images = media.images
-        if self.video is not None:
-            try:
-                cap = cv2.VideoCapture(str(self.video))
-            except cv2.error:
-                cap = None
-            if cap is None or not cap.isOpened():
-                raise InputError(f"cannot open video {self.video} (corrupt or unsupported codec)")
-            self.cap = cap
-            self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) or 30.0
-            self.count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-            self.width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
-            self.height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        else:
-            self.cap = None
-            self.fps = 0.0
-            self.count = len(self.images)
-            first = read_image(self.images[0])
-            self.height, self.width = first.shape[:2]
-
-    def frames(
-        self, start: int = 0, end: int | None = None, every: int = 1
-    ) -> Iterator[tuple[object, float, np.ndarray | None]]:
-        if self.cap is None:
-            for i, p in enumerate(self.images):
-                if i < start or (end is not None and i >= end) or (i - start) % every:
-                    continue
-                try:
-                    img = read_image(p)
-                except InputError:
-                    img = None
-                yield p.name, float("nan"), img
-            return
-        yield from self._video_frames(start, end, every)
-
-    def _video_frames(self, start, end, every):
-        """Decode in order; a damaged stretch is reported frame by frame as undecodable and
-        decoding resumes after it (FFmpeg cannot resync by itself, so reopen and seek)."""
-        cap, i = self.cap, 0
-        if start > 0:
-            _seek(cap, start)
-            i = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
-        while end is None or i < end:
-            try:
-                ok = cap.grab()
-            except cv2.error:
-                ok = False
-            if not ok:
-                if not self.count or i >= self.count:
-                    break  # the real end of the video
-                if (i - start) % every == 0 and i >= start:
-                    yield i, i / self.fps, None
-                i += 1
-                cap.release()
-                cap = self.cap = cv2.VideoCapture(str(self.video))
-                _seek(cap, i)
-                while i < self.count and int(cap.get(cv2.CAP_PROP_POS_FRAMES)) != i:
-                    if (i - start) % every == 0 and i >= start and (end is None or i < end):
-                        yield i, i / self.fps, None
-                    i += 1
-                    _seek(cap, i)
-                continue
-            if i >= start and (i - start) % every == 0:
-                try:
-                    ok, frame = cap.retrieve()
-                except cv2.error:
-                    ok, frame = False, None
-                ms = cap.get(cv2.CAP_PROP_POS_MSEC)
-                t = ms / 1000.0 if ms and ms > 0 else i / self.fps
-                yield i, t, frame if ok else None
-            i += 1
-        cap.release()
-
-
-def _seek(cap, frame: int) -> None:
-    try:
-        cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
-    except cv2.error:
-        pass
 
 
 def parse_when(value: str | None, fps: float, option: str = "--start") -> int | None:
@@ -128,23 +37,6 @@ def parse_when(value: str | None, fps: float, option: str = "--start") -> int | 
         raise click.BadParameter(
             f"{value!r}: use a frame number (120) or seconds (4s)", param_hint=f"'{option}'"
         ) from None
-
-
-def matching_camera(camera: Camera, width: int, height: int) -> Camera:
-    """The camera for frames of another size: scaled when the aspect ratio matches."""
-    if (width, height) == camera.size:
-        return camera
-    if abs(width * camera.height - height * camera.width) <= max(width, height) * 0.01:
-        ui.log.warning(
-            f"frames are {width}x{height}, camera is {camera.width}x{camera.height}:"
-            " scaling the intrinsics"
-        )
-        return camera.scaled(width, height)
-    raise InputError(
-        f"frames are {width}x{height} but the camera was calibrated at "
-        f"{camera.width}x{camera.height} (other aspect ratio); calibrate at this "
-        "size or resize the video"
-    )
 
 
 # --------------------------------------------------------------------------------------
@@ -206,6 +98,12 @@ def draw_overlay(img: np.ndarray, res: FrameResult, camera: Camera, axis_m: floa
 @click.option("--start", default=None, help="First frame: frame number or seconds ('4s').")
 @click.option("--end", default=None, help="Stop before this frame / time.")
 @click.option(
+    "--fps",
+    type=click.FloatRange(min=0, min_open=True),
+    default=None,
+    help="Images: frame rate, time_s = index / FPS [default: times in the file names, if any].",
+)
+@click.option(
     "--every",
     type=click.IntRange(min=1),
     default=1,
@@ -246,6 +144,7 @@ def track_cmd(
     method,
     start,
     end,
+    fps,
     every,
     redetect_every,
     no_flow,
@@ -271,10 +170,10 @@ def track_cmd(
                 f"model {model_path} was built with another camera than "
                 f"{camera_path}; rebuild the model or pass the model's camera"
             )
-    src = FrameSource(list(video))
-    if src.count == 0 and src.cap is not None:
+    src = FrameSource(list(video), fps=fps)
+    if src.count == 0 and src.is_video:
         ui.log.warning(f"{src.video}: frame count unknown; reading until the end")
-    camera = matching_camera(camera, src.width, src.height)
+    camera = matching_camera(camera, *src.size)
     if method == "ap3p":
         ui.log.warning("ap3p solves from 3 points only: for comparing solvers, not for results")
     settings = TrackSettings(
@@ -326,7 +225,7 @@ def _loop(src, tracker, out, camera, first, last, every, ov_tmp, axis_m, total, 
     try:
         with PoseCSVWriter(out, DIAG) as w, ui.progress(total, "tracking") as bar:
             t_loop = time.perf_counter()
-            for fid, t, img in src.frames(first, last, every):
+            for _, fid, t, img in src.frames(first, last, every):
                 t0 = time.perf_counter()
                 if img is None:
                     res = FrameResult("decode_error")

@@ -22,7 +22,7 @@ from mirage_cli.calibrate import (
 )
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
-from mirage_cli.media import iter_video, read_image, resolve_inputs
+from mirage_cli.frames import FrameSource, read_image, resolve_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL = ROOT / "tests" / "data" / "chessboard-right"
@@ -183,9 +183,9 @@ def test_video_sampling_and_duplicates(tmp_path):
             w.write(cv2.imread(str(p)))
     w.release()
     assert resolve_inputs([video]).is_video
-    frames = list(iter_video(video, every=2))
-    assert [f[0] for f in frames] == list(range(0, 18, 2))
-    assert frames[1][1] == pytest.approx(0.2)
+    frames = list(FrameSource([video]).frames(every=2))
+    assert [f.index for f in frames] == list(range(0, 18, 2))
+    assert frames[1].time_s == pytest.approx(0.2)
     det = detect_video(video, Board(9, 6, 0.025), every=1)
     assert det.examined == 18 and len(det.views) == 6 and det.duplicates == 12
 

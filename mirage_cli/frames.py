@@ -1,0 +1,320 @@
+"""Frames from a video, image files, a folder or a glob: the one reader of every command.
+
+INPUT arguments (files, folders, globs, or one video) resolve to a naturally sorted image
+list or a video; images are read with a clear error instead of OpenCV's silent None; and
+`FrameSource` yields timed frames of either kind, reporting a damaged stretch of a video
+frame by frame (image None) and decoding on after it.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import re
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from .camera import Camera
+from .errors import InputError
+
+log = logging.getLogger("mirage")
+
+# FFmpeg writes its own complaints ("moov atom not found") straight to stderr, next to
+# our one-line error; silence them (read at the first video open; env can override).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
+
+IMAGE_EXTS = frozenset(
+    {".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm", ".jp2"}
+)
+VIDEO_EXTS = frozenset(
+    {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".mts"}
+)
+_GLOB_CHARS = re.compile(r"[*?\[]")
+
+
+@dataclass
+class MediaInput:
+    """What INPUT arguments resolved to: a sorted list of images, or one video."""
+
+    images: list[Path] = field(default_factory=list)
+    video: Path | None = None
+
+    @property
+    def is_video(self) -> bool:
+        return self.video is not None
+
+
+def natural_key(path: Path) -> list:
+    """Sort key so that img2 comes before img10 (people number files without padding)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(path))]
+
+
+def is_image_path(path: Path) -> bool:
+    return path.suffix.lower() in IMAGE_EXTS
+
+
+def is_video_path(path: Path) -> bool:
+    """A video by extension, or any other file that OpenCV can open as a video."""
+    if path.suffix.lower() in VIDEO_EXTS:
+        return True
+    if path.suffix.lower() in IMAGE_EXTS or not path.is_file():
+        return False
+    cap = _open_capture(path, strict=False)
+    if cap is None:
+        return False
+    ok = cap.isOpened() and cap.get(cv2.CAP_PROP_FRAME_COUNT) > 1
+    cap.release()
+    return bool(ok)
+
+
+def resolve_inputs(inputs: Iterable[str], what: str = "images") -> MediaInput:
+    """Expand files, folders and globs into sorted image paths, or detect one video."""
+    inputs = [str(i) for i in inputs]
+    if not inputs:
+        raise InputError(f"no input given; pass {what} (files, a folder or a glob) or a video")
+    images: list[Path] = []
+    videos: list[Path] = []
+    for arg in inputs:
+        p = Path(arg).expanduser()
+        if p.is_dir():
+            images += [f for f in p.iterdir() if f.is_file() and is_image_path(f)]
+        elif p.is_file():
+            if is_image_path(p):
+                images.append(p)
+            elif is_video_path(p):
+                videos.append(p)
+            else:
+                raise InputError(f"{p} is neither an image ({_exts(IMAGE_EXTS)}) nor a video")
+        elif _GLOB_CHARS.search(arg):
+            hits = [Path(h) for h in glob.glob(str(p), recursive=True)]
+            images += [h for h in hits if h.is_file() and is_image_path(h)]
+            videos += [h for h in hits if h.is_file() and h.suffix.lower() in VIDEO_EXTS]
+        else:
+            raise InputError(f"input {p} not found")
+    if videos:
+        if len(videos) > 1 or images:
+            raise InputError("give either images or a single video, not both / several videos")
+        return MediaInput(video=videos[0])
+    images = sorted(set(images), key=natural_key)
+    if not images:
+        raise InputError(f"no images found in {', '.join(inputs)} (looked for {_exts(IMAGE_EXTS)})")
+    return MediaInput(images=images)
+
+
+def read_image(path: str | Path, gray: bool = False) -> np.ndarray:
+    """Read an image or raise InputError (cv2.imread returns None on corrupt files)."""
+    p = Path(path)
+    try:
+        data = np.fromfile(p, dtype=np.uint8)  # also handles non-ASCII paths
+    except OSError as e:
+        raise InputError(f"cannot read image {p}: {e.strerror or e}") from None
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR)
+    except cv2.error:
+        img = None
+    if img is None or img.size == 0:
+        raise InputError(f"cannot decode image {p} (corrupt or unsupported format)")
+    return img
+
+
+class Frame(NamedTuple):
+    """One frame of a source: `id` is what the pose CSV's `frame` column holds."""
+
+    index: int  # position in the video / in the sorted image list
+    id: int | str  # video frame number, or the image file name
+    time_s: float  # seconds; NaN when the source has no times
+    image: np.ndarray | None  # None when the frame cannot be decoded
+
+
+# Image names that are times: seconds with a decimal point (TUM: 1305031102.175304.png), or
+# integers of NS_DIGITS or more digits, nanoseconds (EuRoC, ROS bag exports:
+# 1403636579763555584.png, 000123456789.png). Shorter integers (000042.png) count frames.
+_NUMBER = re.compile(r"^(\d+)(\.\d+)?$")
+NS_DIGITS = 12
+
+
+def name_times(paths: list[Path]) -> np.ndarray | None:
+    """Times in seconds read from the file names, or None when they are not timestamps."""
+    times = []
+    for p in paths:
+        m = _NUMBER.match(p.stem)
+        if m is None or (m.group(2) is None and len(m.group(1)) < NS_DIGITS):
+            return None
+        times.append(float(p.stem) if m.group(2) else int(m.group(1)) / 1e9)
+    t = np.array(times)
+    if len(t) and len(np.unique(t)) < len(t):
+        return None  # two images at one time: not a clock
+    return t
+
+
+class FrameSource:
+    """Frames of one video or of an image sequence, with times, in order.
+
+    Image sequences are timed by `fps` (time = index / fps) when given, else by their names
+    when those are timestamps (`name_times`; the images are then ordered by time), else
+    their times are NaN. A video is timed by its stream.
+    """
+
+    def __init__(self, inputs: Iterable[str | Path], what: str = "a video or images", fps=None):
+        media = resolve_inputs(inputs, what)
+        self.video, self.images = media.video, media.images
+        self.times: np.ndarray | None = None
+        self._size: tuple[int, int] | None = None
+        if self.video is not None:
+            if fps:
+                raise InputError("--fps is for image sequences; a video has its own frame rate")
+            cap = _open_capture(self.video)
+            try:
+                self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0) or 30.0
+                self.count = max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
+                self._size = (
+                    int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+                    int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+                )
+            finally:
+                cap.release()
+            return
+        self.count = len(self.images)
+        self.fps = float(fps or 0.0)
+        if fps:
+            self.times = np.arange(self.count) / self.fps
+        else:
+            stamps = name_times(self.images)
+            if stamps is not None:
+                order = np.argsort(stamps, kind="stable")
+                self.images = [self.images[i] for i in order]
+                self.times = stamps[order]
+                dt = np.diff(self.times)
+                self.fps = 1.0 / float(np.median(dt)) if len(dt) else 0.0
+
+    @property
+    def is_video(self) -> bool:
+        return self.video is not None
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height): the video's, or the first decodable image's."""
+        if self._size is None:
+            for p in self.images:
+                try:
+                    img = read_image(p, gray=True)
+                except InputError:
+                    continue
+                self._size = (img.shape[1], img.shape[0])
+                break
+            else:
+                raise InputError(f"none of the {len(self.images)} images could be read")
+        return self._size
+
+    def frames(
+        self, start: int = 0, end: int | None = None, every: int = 1, gray: bool = False
+    ) -> Iterator[Frame]:
+        """Frames start, start + every, ... before `end`; undecodable ones with image None."""
+        if every < 1:
+            raise InputError(f"frame step must be >= 1, got {every}")
+        if self.video is not None:
+            yield from self._video_frames(start, end, every, gray)
+            return
+        for i, p in enumerate(self.images):
+            if i < start or (end is not None and i >= end) or (i - start) % every:
+                continue
+            try:
+                img = read_image(p, gray=gray)
+            except InputError:
+                img = None
+            t = float(self.times[i]) if self.times is not None else float("nan")
+            yield Frame(i, p.name, t, img)
+
+    def _video_frames(self, start, end, every, gray) -> Iterator[Frame]:
+        """Decode in order; a damaged stretch is reported frame by frame as undecodable and
+        decoding resumes after it (FFmpeg cannot resync by itself, so reopen and seek)."""
+
+        def wanted(i):
+            return i >= start and (i - start) % every == 0 and (end is None or i < end)
+
+        cap, i = _open_capture(self.video), 0
+        try:
+            if start > 0:
+                _seek(cap, start)
+                i = int(cap.get(cv2.CAP_PROP_POS_FRAMES))
+            while end is None or i < end:
+                try:
+                    ok = cap.grab()
+                except cv2.error:
+                    ok = False
+                if not ok:
+                    if not self.count or i >= self.count:
+                        break  # the real end of the video
+                    if wanted(i):
+                        yield Frame(i, i, i / self.fps, None)
+                    i += 1
+                    cap.release()
+                    cap = _open_capture(self.video)
+                    _seek(cap, i)
+                    while i < self.count and int(cap.get(cv2.CAP_PROP_POS_FRAMES)) != i:
+                        if wanted(i):
+                            yield Frame(i, i, i / self.fps, None)
+                        i += 1
+                        _seek(cap, i)
+                    continue
+                if wanted(i):
+                    try:
+                        ok, frame = cap.retrieve()
+                    except cv2.error:
+                        ok, frame = False, None
+                    ms = cap.get(cv2.CAP_PROP_POS_MSEC)
+                    t = ms / 1000.0 if ms and ms > 0 else i / self.fps
+                    if ok and frame is not None and gray and frame.ndim == 3:
+                        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+                    yield Frame(i, i, t, frame if ok else None)
+                i += 1
+        finally:
+            cap.release()
+
+
+def matching_camera(camera: Camera, width: int, height: int) -> Camera:
+    """The camera for frames of another size: scaled when the aspect ratio matches."""
+    if (width, height) == camera.size:
+        return camera
+    if abs(width * camera.height - height * camera.width) <= max(width, height) * 0.01:
+        log.warning(
+            f"frames are {width}x{height}, camera is {camera.width}x{camera.height}:"
+            " scaling the intrinsics"
+        )
+        return camera.scaled(width, height)
+    raise InputError(
+        f"frames are {width}x{height} but the camera was calibrated at "
+        f"{camera.width}x{camera.height} (other aspect ratio); calibrate at this "
+        "size or resize the video"
+    )
+
+
+def _seek(cap, frame: int) -> None:
+    try:
+        cap.set(cv2.CAP_PROP_POS_FRAMES, frame)
+    except cv2.error:
+        pass
+
+
+def _open_capture(p: Path, strict: bool = True):
+    try:
+        cap = cv2.VideoCapture(str(p))
+    except cv2.error:
+        cap = None
+    if cap is None or not cap.isOpened():
+        if cap is not None:
+            cap.release()
+        if strict:
+            raise InputError(f"cannot open video {p} (missing, corrupt or unsupported codec)")
+        return None
+    return cap
+
+
+def _exts(exts) -> str:
+    return ", ".join(sorted(e.lstrip(".") for e in exts))
