@@ -25,15 +25,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mirage_cli import track  # noqa: E402
 from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.features import detect, make_detector  # noqa: E402
+from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
-from mirage_cli.posecsv import read_pose_csv, row_pose  # noqa: E402
 from mirage_cli.solver import METHODS  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
 from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
+from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
 
 SAMPLE = ROOT / "sample_data"
 IN_VIEW = 0.3  # share of the landmark inside the image for a frame to count as "in view"
@@ -41,13 +43,7 @@ IN_VIEW = 0.3  # share of the landmark inside the image for a frame to count as 
 
 def load_frames(video: Path) -> tuple[list[np.ndarray], float]:
     t0 = time.perf_counter()
-    cap = cv2.VideoCapture(str(video))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(f)
+    frames = [f.image for f in FrameSource([video]).frames()]
     return frames, len(frames) / (time.perf_counter() - t0)
 
 
@@ -64,12 +60,11 @@ def get_model(camera: Camera, path: Path | None) -> LandmarkModel:
 
 
 def run_mirage(frames, model, camera, method):
+    """`mirage track`'s loop (track.run) over frames held in memory."""
     tr = Tracker(model, camera, TrackSettings(method=method))
-    poses = []
     t0 = time.perf_counter()
-    for f in frames:
-        res = tr.process(cv2.cvtColor(f, cv2.COLOR_BGR2GRAY))
-        poses.append(res.pose if res.status == "ok" else None)
+    held = (Frame(i, i, float("nan"), f) for i, f in enumerate(frames))
+    poses = [rec.pose if rec.ok else None for rec in track.run(held, tr)]
     return poses, time.perf_counter() - t0
 
 

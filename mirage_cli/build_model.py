@@ -34,7 +34,7 @@ from .fileio import read_yaml, require_file
 from .frames import FrameSource, read_image, resolve_inputs
 from .model import Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
 from .pose import Pose, matrix_from_rpy
-from .posecsv import poses_by_frame, read_pose_csv
+from .trajectory import poses_by_frame, read_pose_csv
 
 log = logging.getLogger("mirage")
 

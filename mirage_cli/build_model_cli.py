@@ -159,17 +159,23 @@ def build_model_cmd(
         res = build_model(views, camera, settings, stages)
     finally:
         stages.close()
+    source = {
+        "inputs": list(inputs),
+        "poses": poses_path,
+        "board": board.to_yaml() if board else None,
+    }
+    save_model(res, output, source, t0)
+
+
+def save_model(res, output, source: dict, t0: float) -> None:
+    """Write a built model (with where it came from), warn about weak parts, summarise."""
     model = res.model
     if len(model.points) == 0:
         raise InputError(
             "no 3D points could be triangulated: are the views close enough in direction "
             "(see --spacing-deg) and the poses right? (try --roi none)"
         )
-    model.meta["source"] = {
-        "inputs": list(inputs),
-        "poses": poses_path,
-        "board": board.to_yaml() if board else None,
-    }
+    model.meta["source"] = source
     model.save(output)
     weak = [kf.name for kf in model.keyframes if kf.n_linked < 30]
     if weak:

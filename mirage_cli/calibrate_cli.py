@@ -186,10 +186,14 @@ def calibrate(
     else:
         with ui.progress(len(media.images), "detecting") as bar:
             det = detect_images(media.images, target, workers, bar.update, subpix_window)
+    calibrate_detections(det, target, opts, output, report)
+
+
+def calibrate_detections(det: Detections, target: Board, opts: CalibOptions, output, report=None):
+    """Calibrate from detected views, write the camera YAML (and plot), print the summary."""
     for w in det.warnings:
         ui.log.warning(w)
     calib = run_calibration(det, target, opts)
-
     cam = Camera(calib.K, calib.dist, *calib.image_size, calib.rms_px, _meta(calib, det, target))
     cam.save(output)
     if report:

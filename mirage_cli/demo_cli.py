@@ -82,8 +82,7 @@ def project_config(overlay: bool) -> dict:
     help="Sample data folder [default: sample_data/ of the repository].",
 )
 @click.option("--overlay", is_flag=True, help="Also write overlay.mp4 from track (slower).")
-@click.pass_context
-def demo_cmd(ctx, out, sample_data, overlay):
+def demo_cmd(out, sample_data, overlay):
     """Run calibrate -> build-model -> track -> report on the sample data.
 
     \b
@@ -91,12 +90,6 @@ def demo_cmd(ctx, out, sample_data, overlay):
       mirage demo --out demo_out
       cd demo_out && mirage report poses.csv      # options come from mirage.yaml
     """
-    # imported here so that `mirage --help` stays fast (the stages pull in OpenCV)
-    from .build_model_cli import build_model_cmd
-    from .calibrate_cli import calibrate
-    from .report_cli import report_cmd
-    from .track_cli import track_cmd
-
     src = find_sample_data(Path(sample_data) if sample_data else None)
     d = ensure_dir(out)
     t_all = time.perf_counter()
@@ -107,57 +100,17 @@ def demo_cmd(ctx, out, sample_data, overlay):
         ("keyframes/poses.csv", "keyframes_poses.csv"),
     ]:
         shutil.copyfile(src / name, d / dest)
-
     steps = [
-        (
-            "calibrate",
-            calibrate,
-            {
-                "inputs": (str(src / "calibration"),),
-                "board": BOARD,
-                "square": SQUARE,
-                "output": str(d / "camera.yaml"),
-            },
-        ),
-        (
-            "build-model",
-            build_model_cmd,
-            {
-                "inputs": (str(src / "keyframes"),),
-                "camera_path": str(d / "camera.yaml"),
-                "poses_path": str(d / "keyframes_poses.csv"),
-                "output": str(d / "landmark.mirage"),
-            },
-        ),
-        (
-            "track",
-            track_cmd,
-            {
-                "video": (str(src / "orbit.mp4"),),
-                "model_path": str(d / "landmark.mirage"),
-                "camera_path": str(d / "camera.yaml"),
-                "output": str(d / "poses.csv"),
-                "overlay": str(d / "overlay.mp4") if overlay else None,
-            },
-        ),
-        (
-            "report",
-            report_cmd,
-            {
-                "poses": str(d / "poses.csv"),
-                "path": str(d / "desired_path.yaml"),
-                "truth": str(d / "orbit_truth.csv"),
-                "output": str(d / "report.csv"),
-                "summary": str(d / "summary.yaml"),
-                "plot": str(d / "report.png"),
-            },
-        ),
+        ("calibrate", lambda: _calibrate(src, d)),
+        ("build-model", lambda: _build_model(src, d)),
+        ("track", lambda: _track(src, d, overlay)),
+        ("report", lambda: _report(d)),
     ]
     timings = {}
-    for i, (name, cmd, kwargs) in enumerate(steps, 1):
+    for i, (name, step) in enumerate(steps, 1):
         ui.echo(f"== {i}/{len(steps)} mirage {name} ==")
         t0 = time.perf_counter()
-        ctx.invoke(cmd, **kwargs)
+        step()
         timings[name] = time.perf_counter() - t0
         ui.echo(f"   ({timings[name]:.1f} s)")
         ui.echo()
@@ -173,3 +126,53 @@ def demo_cmd(ctx, out, sample_data, overlay):
     steps_s = ", ".join(f"{k} {v:.1f} s" for k, v in timings.items())
     ui.echo(f"demo: done in {total:.1f} s ({steps_s}); everything is in {d}/")
     ui.echo(f"      open {d / 'report.png'}; inside {d}, mirage.yaml supplies the options")
+
+
+# The steps call the core and the commands' own output functions, with the commands'
+# defaults (the settings dataclasses); imported inside, so that `mirage --help` stays fast.
+def _calibrate(src: Path, d: Path) -> None:
+    from .calibrate import Board, CalibOptions, detect_images
+    from .calibrate_cli import calibrate_detections
+    from .frames import resolve_inputs
+
+    board = Board(*BOARD, SQUARE)
+    det = detect_images(resolve_inputs([src / "calibration"], "board images").images, board)
+    calibrate_detections(det, board, CalibOptions(), d / "camera.yaml")
+
+
+def _build_model(src: Path, d: Path) -> None:
+    from .build_model import BuildSettings, build_model, views_from_inputs
+    from .build_model_cli import save_model
+    from .camera import Camera
+
+    t0 = time.perf_counter()
+    inputs, poses = [str(src / "keyframes")], str(d / "keyframes_poses.csv")
+    camera, settings = Camera.load(d / "camera.yaml"), BuildSettings()
+    views = views_from_inputs(inputs, camera, settings, poses_csv=poses)
+    res = build_model(views, camera, settings)
+    save_model(res, d / "landmark.mirage", {"inputs": inputs, "poses": poses, "board": None}, t0)
+
+
+def _track(src: Path, d: Path, overlay: bool) -> None:
+    from .camera import Camera
+    from .frames import FrameSource, matching_camera
+    from .model import LandmarkModel
+    from .track import Tracker, TrackSettings
+    from .track_cli import track_to_files
+
+    model = LandmarkModel.load(d / "landmark.mirage")
+    frames = FrameSource([src / "orbit.mp4"])
+    camera = matching_camera(Camera.load(d / "camera.yaml"), *frames.size)
+    tracker = Tracker(model, camera, TrackSettings())
+    track_to_files(frames, tracker, d / "poses.csv", overlay=d / "overlay.mp4" if overlay else None)
+
+
+def _report(d: Path) -> None:
+    from .path import load_path
+    from .report import make_report
+    from .report_cli import publish_report
+    from .trajectory import read_pose_csv
+
+    desired = load_path(d / "desired_path.yaml")
+    rep = make_report(read_pose_csv(d / "poses.csv"), desired, read_pose_csv(d / "orbit_truth.csv"))
+    publish_report(rep, desired, d / "report.csv", d / "summary.yaml", d / "report.png")

@@ -1,6 +1,6 @@
 """Path-tracking report (brief, section 4.4): per-frame error table, summary, plot.
 
-Pure core: takes validated pose tables (mirage_cli.posecsv) and a desired path
+Pure core: takes validated pose tables (mirage_cli.trajectory) and a desired path
 (mirage_cli.path); no terminal I/O. Everything is vectorised over frames.
 """
 
@@ -13,6 +13,7 @@ import pandas as pd
 
 from .errors import InputError
 from .path import CirclePath, Path_
+from .trajectory import Status
 
 BASE_COLUMNS = [
     "frame", "time_s", "status", "x_m", "y_m", "z_m",
@@ -63,7 +64,7 @@ def align_truth(poses: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
 
 def make_report(poses: pd.DataFrame, path: Path_, truth: pd.DataFrame | None = None) -> Report:
     """Per-frame errors and the summary for a pose table from `read_pose_csv`."""
-    ok = (poses["status"] == "ok").to_numpy()
+    ok = (poses["status"] == Status.OK).to_numpy()
     xyz = poses[["x_m", "y_m", "z_m"]].to_numpy(float)
     xyz[~ok] = np.nan
     times = poses["time_s"].to_numpy(float)
@@ -85,7 +86,7 @@ def make_report(poses: pd.DataFrame, path: Path_, truth: pd.DataFrame | None = N
     aligned = None
     if truth is not None:
         aligned = align_truth(poses, truth)
-        tok = (aligned["status"] == "ok").to_numpy()
+        tok = (aligned["status"] == Status.OK).to_numpy()
         txyz = aligned[["x_m", "y_m", "z_m"]].to_numpy(float)
         tq = aligned[["qw", "qx", "qy", "qz"]].to_numpy(float)
         pq = poses[["qw", "qx", "qy", "qz"]].to_numpy(float)
@@ -136,7 +137,7 @@ def summarize(table: pd.DataFrame, with_truth: bool, truth: pd.DataFrame | None 
     """Frames, tracked %, mean / RMS / p95 / max of every error (p95 and max of |error|),
     and the longest lost stretch in frames and seconds."""
     n = len(table)
-    ok = (table["status"] == "ok").to_numpy()
+    ok = (table["status"] == Status.OK).to_numpy()
     lost = ~ok
     run, start = longest_run(lost)
     t = table["time_s"].to_numpy(float)
@@ -202,7 +203,7 @@ def plot_report(path_png, rep: Report, path: Path_) -> None:
     xlabel = "time (s)"
     if not np.isfinite(t).any():
         t, xlabel = np.arange(len(tab), dtype=float), "frame"
-    ok = (tab["status"] == "ok").to_numpy()
+    ok = (tab["status"] == Status.OK).to_numpy()
     edges = np.flatnonzero(np.diff(np.r_[0, (~ok).astype(np.int8), 0]))
     lost_runs = list(zip(edges[::2], edges[1::2], strict=True))
     step = _step(t)

@@ -9,8 +9,8 @@ import yaml
 from . import ui
 from .fileio import atomic_write, check_writable
 from .path import load_path
-from .posecsv import read_pose_csv
 from .report import Report, make_report, plot_report
+from .trajectory import read_pose_csv
 
 _UNITS = {"_m": "m", "_deg": "deg"}
 
@@ -90,7 +90,11 @@ def report_cmd(poses, path, truth, output, summary, plot):
     desired = load_path(path)
     table = read_pose_csv(poses)
     truth_df = read_pose_csv(truth) if truth else None
-    rep = make_report(table, desired, truth_df)
+    publish_report(make_report(table, desired, truth_df), desired, output, summary, plot)
+
+
+def publish_report(rep: Report, desired, output, summary=None, plot=None) -> None:
+    """Write the report's files and print its summary."""
     write_report(rep, output, summary, plot, desired)
     for line in summary_lines(rep.summary):
         ui.echo(line)

@@ -16,8 +16,8 @@ from .calibrate_cli import parse_board
 from .camera import Camera
 from .errors import InputError, OutputError
 from .fileio import atomic_path, atomic_write, ensure_dir
-from .posecsv import PoseCSVWriter
 from .render import Renderer, stable_rng
+from .trajectory import FrameRecord, Status, write_trajectory
 
 PARTS = ("calibration", "keyframes", "orbit")
 
@@ -241,9 +241,10 @@ def _calibration(folder, cam, cols, rows, square, n, seed, noise, quality, jobs)
         strict=True,
     ):
         _write_jpeg(folder / name, img, quality)
-    with PoseCSVWriter(folder / "poses.csv") as w:  # camera poses in the board frame
-        for name, p in zip(names, poses, strict=True):
-            w.write(name, None, "ok", p)
+    write_trajectory(  # camera poses in the board frame
+        folder / "poses.csv",
+        [FrameRecord(Status.OK, p, name) for name, p in zip(names, poses, strict=True)],
+    )
     ui.echo(
         f"synth: {n} chessboard views ({cols}x{rows} inner corners, {square * 1000:g} mm "
         f"squares) in {folder}"
@@ -258,9 +259,9 @@ def _keyframes(folder, renderer, step, radius, heights, seed, noise, quality, jo
     )
     for (name, _), img in zip(views, imgs, strict=True):
         _write_jpeg(folder / f"{name}.jpg", img, quality)
-    with PoseCSVWriter(folder / "poses.csv") as w:
-        for name, p in views:
-            w.write(f"{name}.jpg", None, "ok", p)
+    write_trajectory(
+        folder / "poses.csv", [FrameRecord(Status.OK, p, f"{name}.jpg") for name, p in views]
+    )
     ui.echo(f"synth: {len(views)} keyframes every {step:g} deg in {folder}")
 
 
@@ -288,9 +289,14 @@ def _orbit(out: Path, renderer, duration, fps, seed, noise, blur, jobs):
         for img in _render_all(renderer, pose_lists, noise, seed, "orbit", jobs, "orbit video"):
             writer.write(img)
         writer.release()
-    with PoseCSVWriter(out / "orbit_truth.csv", ["landmark_visible"]) as w:
-        for i, (t, p, v) in enumerate(zip(times, poses, vis, strict=True)):
-            w.write(i, t, "ok", p, landmark_visible=round(v, 4))
+    write_trajectory(
+        out / "orbit_truth.csv",
+        [
+            FrameRecord(Status.OK, p, i, t, extra={"landmark_visible": round(v, 4)})
+            for i, (t, p, v) in enumerate(zip(times, poses, vis, strict=True))
+        ],
+        extra_columns=["landmark_visible"],
+    )
     with atomic_write(out / "desired_path.yaml") as f:
         f.write("# Desired path of the orbit (mirage synth); see the brief, section 3.\n")
         yaml.safe_dump(path.desired_path(), f, sort_keys=False, default_flow_style=None)

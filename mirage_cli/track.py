@@ -10,6 +10,8 @@ ok / lost gate, so a frame without enough consistent evidence is `lost`, never a
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -17,9 +19,11 @@ import numpy as np
 
 from .camera import Camera
 from .features import detect, make_detector, norm_type, ratio_match
+from .frames import Frame
 from .model import LandmarkModel
 from .pose import Pose
 from .solver import PoseEstimate, solve_pose
+from .trajectory import FrameRecord, Status
 
 
 @dataclass
@@ -42,21 +46,6 @@ class TrackSettings:
     seed: int = 0
 
 
-@dataclass
-class FrameResult:
-    status: str  # ok | lost
-    pose: Pose | None = None
-    keyframe: str = ""
-    matches: int = 0
-    inliers: int = 0
-    rmse_px: float = float("nan")
-    iterations: int = 0
-    sigma_pos_m: float = float("nan")
-    sigma_rot_deg: float = float("nan")
-    mode: str = ""  # detect | flow
-    inlier_px: np.ndarray | None = None  # for overlays
-
-
 class Tracker:
     """Stateful per-frame tracker; feed frames in order with `process(gray)`."""
 
@@ -74,7 +63,7 @@ class Tracker:
         self._kf_cache: dict[int, tuple] = {}
 
     # ------------------------------------------------------------------------------------
-    def process(self, gray: np.ndarray) -> FrameResult:
+    def process(self, gray: np.ndarray) -> FrameRecord:
         res = None
         if (
             self.s.flow
@@ -83,10 +72,10 @@ class Tracker:
             and self.since_detect < self.s.redetect_every
         ):
             res = self._flow(gray)
-        if res is None or res.status != "ok":
+        if res is None or not res.ok:
             res = self._detect(gray)
         self.prev_gray = gray
-        if res.status == "ok":
+        if res.ok:
             self.prev_pose = res.pose
             self.lost_run = 0
         else:
@@ -97,7 +86,7 @@ class Tracker:
         return res
 
     # ------------------------------------------------------------------------------------
-    def _flow(self, gray: np.ndarray) -> FrameResult | None:
+    def _flow(self, gray: np.ndarray) -> FrameRecord | None:
         p0 = self.track_px.reshape(-1, 1, 2)
         lk = dict(
             winSize=(15, 15),
@@ -129,26 +118,26 @@ class Tracker:
             seed=self.s.seed,
         )
         res = self._gate(est, len(uv), "flow", check_jump=True)
-        if res.status == "ok" and est.rmse_px > self.s.flow_max_rmse_px:
+        if res.ok and est.rmse_px > self.s.flow_max_rmse_px:
             return None  # the flow has drifted or the motion was too large: detect afresh
-        if res.status == "ok":
+        if res.ok:
             self.since_detect += 1
             self.track_px, self.track_X = uv[est.inliers].astype(np.float32), X[est.inliers]
             res.inlier_px = self.track_px
         return res
 
-    def _detect(self, gray: np.ndarray) -> FrameResult:
+    def _detect(self, gray: np.ndarray) -> FrameRecord:
         self.since_detect = 0
         kps, desc = detect(gray, self.detector)
         if desc is None or len(kps) < self.s.min_inliers:
-            return FrameResult("lost", mode="detect")
+            return FrameRecord(Status.LOST, mode="detect")
         if self.prev_pose is not None:
             cands = list(self.model.nearest_keyframes(self.prev_pose, self.s.local_keyframes))
         else:
             cands = [i for i, _ in self.model.recognize(desc, top_k=self.s.global_keyframes)]
         if not cands:
-            return FrameResult("lost", mode="detect")
-        best = FrameResult("lost", mode="detect")
+            return FrameRecord(Status.LOST, mode="detect")
+        best = FrameRecord(Status.LOST, mode="detect")
         # one matching pass against the union of candidate keyframes' 3D-linked features
         X_all, d_all, kf_of = self._candidates(cands)
         qi, ti = ratio_match(desc, d_all, self.s.ratio, self.matcher)
@@ -171,7 +160,7 @@ class Tracker:
         )
         res = self._gate(est, len(uv), "detect", check_jump=False)
         res.keyframe = self.model.keyframes[kf].name
-        if res.status == "ok":
+        if res.ok:
             self.keyframe = kf
             self.track_px = uv[est.inliers].astype(np.float32)
             self.track_X = X[est.inliers]
@@ -190,11 +179,11 @@ class Tracker:
         kf = np.concatenate([p[2] for p in parts])
         return X, d, kf
 
-    def _gate(self, est: PoseEstimate, n: int, mode: str, check_jump: bool) -> FrameResult:
+    def _gate(self, est: PoseEstimate, n: int, mode: str, check_jump: bool) -> FrameRecord:
         """ok only with enough consistent inliers, a small residual and a plausible motion."""
         ninl = int(est.inliers.sum()) if est.success else 0
-        res = FrameResult(
-            "lost",
+        res = FrameRecord(
+            Status.LOST,
             matches=n,
             inliers=ninl,
             iterations=est.iterations,
@@ -219,7 +208,35 @@ class Tracker:
             )
         ):
             return res
-        res.status, res.pose = "ok", est.pose
+        res.status, res.pose = Status.OK, est.pose
         if mode == "flow" and self.keyframe >= 0:
             res.keyframe = self.model.keyframes[self.keyframe].name
         return res
+
+
+def run(
+    frames: Iterable[Frame], tracker: Tracker, keep_images: bool = False
+) -> Iterator[FrameRecord]:
+    """Track frames in order: one final record per frame, yielded as soon as it is final.
+
+    The one tracking loop of `mirage track`, the demo and the benchmarks. A generator, so
+    that callers write each record as it comes; it may hold a few frames back (to confirm
+    a pose with the frames after it) but never changes a record once yielded.
+    Undecodable frames are `decode_error`, frames of another size than the camera
+    `size_mismatch`. `keep_images` leaves each frame's image on its record (overlays).
+    """
+    for f in frames:
+        t0 = time.perf_counter()
+        if f.image is None:
+            rec = FrameRecord(Status.DECODE_ERROR)
+        else:
+            gray = cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) if f.image.ndim == 3 else f.image
+            if gray.shape[::-1] != tracker.camera.size:
+                rec = FrameRecord(Status.SIZE_MISMATCH)
+            else:
+                rec = tracker.process(gray)
+        rec.frame, rec.time_s = f.id, f.time_s
+        rec.ms = round((time.perf_counter() - t0) * 1000, 2)
+        if keep_images:
+            rec.image = f.image
+        yield rec

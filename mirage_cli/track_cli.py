@@ -10,18 +10,15 @@ import click
 import cv2
 import numpy as np
 
-from . import refine, ui
+from . import refine, track, ui
 from .camera import Camera
 from .errors import InputError, OutputError
-from .fileio import atomic_path, atomic_write, check_writable, require_file
+from .fileio import atomic_path, check_writable, require_file
 from .frames import FrameSource, matching_camera
 from .model import LandmarkModel
-from .posecsv import PoseCSVWriter
 from .solver import METHODS, warm_up
-from .track import FrameResult, Tracker, TrackSettings
-
-DIAG = ["keyframe", "matches", "inliers", "reproj_rmse_px", "iterations", "sigma_pos_m",
-        "sigma_rot_deg", "ms", "mode"]  # fmt: skip
+from .track import Tracker, TrackSettings
+from .trajectory import TRACK_COLUMNS, FrameRecord, Status, TrajectoryWriter
 
 
 def parse_when(value: str | None, fps: float, option: str = "--start") -> int | None:
@@ -42,7 +39,7 @@ def parse_when(value: str | None, fps: float, option: str = "--start") -> int | 
 # --------------------------------------------------------------------------------------
 # overlay
 # --------------------------------------------------------------------------------------
-def draw_overlay(img: np.ndarray, res: FrameResult, camera: Camera, axis_m: float) -> np.ndarray:
+def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: float) -> np.ndarray:
     out = img.copy()
     if res.status == "ok":
         if res.inlier_px is not None:  # 3x3 green dots, stamped with numpy
@@ -136,6 +133,11 @@ def draw_overlay(img: np.ndarray, res: FrameResult, camera: Camera, axis_m: floa
     type=click.Path(dir_okay=False),
     help="Also write a TUM trajectory (time x y z qx qy qz qw) for evo & co.",
 )
+@click.option(
+    "--kitti",
+    type=click.Path(dir_okay=False),
+    help="Also write KITTI poses (3x4 camera-to-world matrix, 12 numbers a line).",
+)
 def track_cmd(
     video,
     model_path,
@@ -152,13 +154,14 @@ def track_cmd(
     max_rmse,
     overlay,
     tum,
+    kitti,
 ):
     """Estimate the camera pose in every frame of VIDEO (a video file, or images).
 
     Example: mirage track orbit.mp4 --model landmark.mirage --camera camera.yaml -o poses.csv
     """
     out = check_writable(output)
-    for extra in (overlay, tum):
+    for extra in (overlay, tum, kitti):
         if extra:
             check_writable(extra)
     model = LandmarkModel.load(require_file(model_path, "model file"))
@@ -184,114 +187,103 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
+    first, last = parse_when(start, src.fps), parse_when(end, src.fps, "--end")
+    track_to_files(src, tracker, out, first or 0, last, every, overlay, tum, kitti)
+
+
+def track_to_files(
+    src, tracker, output, first=0, last=None, every=1, overlay=None, tum=None, kitti=None
+) -> None:
+    """Track the frames, writing each record to the pose CSV (and TUM, KITTI, overlay) as
+    it comes; print the summary. Ctrl-C keeps the finished frames and exits 130."""
     if not refine.cached_on_disk():
         ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
     warm_up()  # compile or load it before the first frame's clock starts
-    first, last = parse_when(start, src.fps), parse_when(end, src.fps, "--end")
-    axis_m = float(np.ptp(model.points, axis=0).max() * 0.4) if len(model.points) else 0.2
-
-    stats = _run(src, tracker, out, camera, first or 0, last, every, overlay, tum, axis_m)
-    _summary(stats, out)
+    points = tracker.model.points
+    axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
+    outputs = [(output, "csv")] + [
+        (path, fmt) for path, fmt in ((tum, "tum"), (kitti, "kitti")) if path
+    ]
+    stats = _track(src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m)
+    _summary(stats, output)
     if stats["interrupted"]:
         raise click.exceptions.Exit(130)
 
 
-def _run(src, tracker, out: Path, camera, first, last, every, overlay, tum, axis_m) -> dict:
-    rows: list[tuple] = []
-    stack = contextlib.ExitStack()
-    ov_tmp = stack.enter_context(atomic_path(overlay)) if overlay else None
-    t_start = time.perf_counter()
+def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -> dict:
+    """Run the tracker over the frames and write every record to every output as it comes."""
     total = None
     if src.count:
         total = len(range(first, min(src.count, last) if last else src.count, every))
+    done: list[tuple[str, int]] = []  # (status, inliers) per frame, for the summary
     interrupted = False
-    with stack:
+    t_start = time.perf_counter()
+    with contextlib.ExitStack() as stack:
+        writers = [
+            stack.enter_context(TrajectoryWriter(path, fmt, TRACK_COLUMNS if fmt == "csv" else ()))
+            for path, fmt in outputs
+        ]
+        fps = src.fps / every if src.fps else 10.0
+        ov = stack.enter_context(_Overlay(overlay, fps, camera, axis_m)) if overlay else None
+        bar = stack.enter_context(ui.progress(total, "tracking"))
+        frames = src.frames(first, last, every)
         try:
-            _loop(src, tracker, out, camera, first, last, every, ov_tmp, axis_m, total, rows)
+            for rec in track.run(frames, tracker, keep_images=ov is not None):
+                for w in writers:
+                    w.write(rec)
+                if ov is not None:
+                    ov.write(rec)
+                done.append((rec.status, rec.inliers))
+                if len(done) % 10 == 0:
+                    rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
+                    bar.update(10, f"{rate:.0f} frames/s")
         except KeyboardInterrupt:
             interrupted = True
     elapsed = time.perf_counter() - t_start
-    if tum:
-        _write_tum(tum, rows, src.fps)
     if interrupted:
-        ui.log.warning(f"interrupted: kept the {len(rows)} frames done so far in {out}")
-    if not rows:
+        ui.log.warning(f"interrupted: kept the {len(done)} frames done so far in {outputs[0][0]}")
+    if not done:
         raise InputError("no frames in the selected range (check --start/--end)")
-    return {"rows": rows, "elapsed": elapsed, "interrupted": interrupted}
+    return {"rows": done, "elapsed": elapsed, "interrupted": interrupted}
 
 
-def _loop(src, tracker, out, camera, first, last, every, ov_tmp, axis_m, total, rows) -> None:
-    writer_ov = None
-    try:
-        with PoseCSVWriter(out, DIAG) as w, ui.progress(total, "tracking") as bar:
-            t_loop = time.perf_counter()
-            for _, fid, t, img in src.frames(first, last, every):
-                t0 = time.perf_counter()
-                if img is None:
-                    res = FrameResult("decode_error")
-                else:
-                    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-                    if gray.shape[::-1] != camera.size:
-                        res = FrameResult("size_mismatch")
-                    else:
-                        res = tracker.process(gray)
-                ms = (time.perf_counter() - t0) * 1000
-                w.write(
-                    fid,
-                    t,
-                    res.status,
-                    res.pose,
-                    keyframe=res.keyframe,
-                    matches=res.matches,
-                    inliers=res.inliers,
-                    reproj_rmse_px=res.rmse_px,
-                    iterations=res.iterations,
-                    sigma_pos_m=res.sigma_pos_m,
-                    sigma_rot_deg=res.sigma_rot_deg,
-                    ms=round(ms, 2),
-                    mode=res.mode,
-                )
-                rows.append((fid, t, res.status, res.inliers, res.pose))
-                if ov_tmp is not None and img is not None:
-                    if writer_ov is None:
-                        fps = src.fps / every if src.fps else 10.0
-                        writer_ov = cv2.VideoWriter(
-                            str(ov_tmp),
-                            cv2.VideoWriter_fourcc(*"mp4v"),
-                            fps,
-                            (img.shape[1], img.shape[0]),
-                        )
-                        if not writer_ov.isOpened():
-                            raise OutputError("cannot write the overlay video (mp4v)")
-                    writer_ov.write(draw_overlay(img, res, camera, axis_m))
-                done = len(rows)
-                if done % 10 == 0:
-                    rate = done / max(time.perf_counter() - t_loop, 1e-9)
-                    bar.update(10, f"{rate:.0f} frames/s")
-    finally:
-        if writer_ov is not None:
-            writer_ov.release()
+class _Overlay:
+    """The overlay video, opened at the first decoded frame (whose size it takes)."""
 
+    def __init__(self, path, fps: float, camera, axis_m: float):
+        self._path = atomic_path(path)
+        self.fps, self.camera, self.axis_m = fps, camera, axis_m
+        self.writer = None
 
-def _write_tum(path, rows, fps) -> None:
-    """TUM RGB-D format: timestamp tx ty tz qx qy qz qw (camera pose in W), ok frames only."""
-    with atomic_write(path) as f:
-        f.write("# timestamp tx ty tz qx qy qz qw (mirage track, camera-to-world)\n")
-        for i, (fid, t, status, _, pose) in enumerate(rows):
-            if status != "ok":
-                continue
-            ts = t if np.isfinite(t) else (fid / fps if isinstance(fid, int) and fps else i)
-            c, q = pose.center, pose.quat_wxyz
-            f.write(
-                f"{ts:.6f} {c[0]:.6f} {c[1]:.6f} {c[2]:.6f} "
-                f"{q[1]:.9f} {q[2]:.9f} {q[3]:.9f} {q[0]:.9f}\n"
+    def __enter__(self):
+        self.tmp = self._path.__enter__()
+        return self
+
+    def write(self, rec) -> None:
+        img, rec.image = rec.image, None
+        if img is None:
+            return
+        if self.writer is None:
+            self.writer = cv2.VideoWriter(
+                str(self.tmp),
+                cv2.VideoWriter_fourcc(*"mp4v"),
+                self.fps,
+                (img.shape[1], img.shape[0]),
             )
+            if not self.writer.isOpened():
+                raise OutputError("cannot write the overlay video (mp4v)")
+        self.writer.write(draw_overlay(img, rec, self.camera, self.axis_m))
+
+    def __exit__(self, *exc):
+        if self.writer is not None:
+            self.writer.release()
+        return self._path.__exit__(*exc)
 
 
 def _summary(stats: dict, out: Path) -> None:
     rows = stats["rows"]
-    status = np.array([r[2] for r in rows])
-    ok = status == "ok"
+    status = np.array([str(r[0]) for r in rows])
+    ok = status == Status.OK
     n = len(rows)
     runs, cur = [], 0
     for s in ok:
@@ -300,13 +292,13 @@ def _summary(stats: dict, out: Path) -> None:
             runs.append(1)
         elif cur > 1:
             runs[-1] = cur
-    inl = np.array([r[3] for r in rows])[ok]
+    inl = np.array([r[1] for r in rows])[ok]
     fps = n / stats["elapsed"] if stats["elapsed"] > 0 else float("inf")
     ui.echo(
         f"track: {n} frames, {ok.sum()} ok ({100 * ok.mean():.1f}%), "
         f"{len(runs)} lost stretch(es)" + (f", longest {max(runs)} frames" if runs else "")
     )
-    other = sorted(set(status) - {"ok", "lost"})
+    other = sorted(set(status) - {Status.OK.value, Status.LOST.value})
     if other:
         ui.echo("       " + ", ".join(f"{(status == s).sum()} {s}" for s in other))
     if ok.any():

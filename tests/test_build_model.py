@@ -15,8 +15,8 @@ from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pose import look_at
-from mirage_cli.posecsv import poses_by_frame, read_pose_csv, row_pose
 from mirage_cli.synth import LANDMARK_BOUNDS, landmark_surface_distance
+from mirage_cli.trajectory import poses_by_frame, read_pose_csv, row_pose
 
 KF = SAMPLE / "keyframes"
 CAM = SAMPLE / "camera_truth.yaml"

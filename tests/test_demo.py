@@ -6,8 +6,8 @@ import pytest
 import yaml
 from conftest import SAMPLE, assert_one_line_error
 
-from mirage_cli.posecsv import read_pose_csv
 from mirage_cli.report import quat_angle_deg
+from mirage_cli.trajectory import read_pose_csv
 
 
 def test_demo_missing_sample_data(tmp_path, mirage):

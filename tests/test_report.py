@@ -9,8 +9,8 @@ from conftest import assert_one_line_error
 from mirage_cli.errors import InputError
 from mirage_cli.path import CirclePath, load_path, path_from_dict, wrap_deg
 from mirage_cli.pose import Pose, look_at, matrix_from_rpy
-from mirage_cli.posecsv import read_pose_csv, write_pose_csv
 from mirage_cli.report import longest_run, make_report
+from mirage_cli.trajectory import FrameRecord, Status, read_pose_csv, write_trajectory
 
 LOOK = (0.0, 0.0, 0.28)
 
@@ -28,7 +28,14 @@ def circle_poses(radius, n=72, z=0.55, yaw_offset_deg=0.0, ccw=True, turns=1.0):
 
 def write(tmp_path, name, poses, times=None, status=None):
     path = tmp_path / name
-    write_pose_csv(path, range(len(poses)), poses, times)
+    times = [float("nan")] * len(poses) if times is None else times
+    write_trajectory(
+        path,
+        [
+            FrameRecord(Status.OK if p is not None else Status.LOST, p, i, t)
+            for i, (p, t) in enumerate(zip(poses, times, strict=True))
+        ],
+    )
     if status is not None:
         df = pd.read_csv(path, dtype=str, keep_default_na=False)
         df["status"] = status

@@ -8,7 +8,6 @@ from conftest import SAMPLE, assert_one_line_error
 
 from mirage_cli.camera import Camera
 from mirage_cli.pose import look_at
-from mirage_cli.posecsv import POSE_COLUMNS, read_pose_csv
 from mirage_cli.render import Renderer
 from mirage_cli.synth import (
     LANDMARK_BOUNDS,
@@ -18,6 +17,7 @@ from mirage_cli.synth import (
     landmark_surface_distance,
     landmark_surface_samples,
 )
+from mirage_cli.trajectory import POSE_COLUMNS, read_pose_csv
 
 
 @pytest.fixture(scope="module")
@@ -149,7 +149,7 @@ def test_orbit_video_and_truth():
     corners = np.array(
         [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
     )
-    from mirage_cli.posecsv import row_pose
+    from mirage_cli.trajectory import row_pose
 
     for _, row in away.iterrows():
         pose = row_pose(row)

@@ -8,9 +8,13 @@ import pandas as pd
 import pytest
 from conftest import SAMPLE, assert_one_line_error, run_mirage
 
+from mirage_cli import track
 from mirage_cli.camera import Camera
-from mirage_cli.posecsv import POSE_COLUMNS, read_pose_csv, row_pose
+from mirage_cli.frames import FrameSource
+from mirage_cli.model import LandmarkModel
 from mirage_cli.synth import LANDMARK_TARGET
+from mirage_cli.track import Tracker, TrackSettings
+from mirage_cli.trajectory import POSE_COLUMNS, Status, read_pose_csv, read_trajectory, row_pose
 
 IN_VIEW = 0.3  # share of the landmark inside the image
 
@@ -30,6 +34,8 @@ def orbit_run(sample_model, tmp_path_factory):
         csv,
         "--tum",
         out / "traj.txt",
+        "--kitti",
+        out / "kitti.txt",
     )
     assert p.returncode == 0, p.stderr
     return csv, out, p
@@ -82,6 +88,47 @@ def test_tum_trajectory(orbit_run):
     assert np.allclose(tum[:, 1:4], ok[["x_m", "y_m", "z_m"]].to_numpy(), atol=1e-6)
     assert np.allclose(tum[:, 7], ok["qw"].to_numpy(), atol=1e-6)  # qw last in TUM
     assert np.allclose(tum[:, 0], ok["time_s"].to_numpy(), atol=1e-3)
+
+
+def test_csv_tum_kitti_of_one_run_agree(orbit_run):
+    csv, out, _ = orbit_run
+    est = read_trajectory(csv)
+    ok = est[est["status"] == Status.OK].reset_index(drop=True)
+    tum, kitti = (
+        read_trajectory(out / "traj.txt", "tum"),
+        read_trajectory(out / "kitti.txt", "kitti"),
+    )
+    assert len(tum) == len(kitti) == len(ok) > 400
+    assert np.allclose(tum["time_s"], ok["time_s"], atol=1e-6)
+    for other in (tum, kitti):
+        for col in ("x_m", "y_m", "z_m", "roll_deg", "pitch_deg", "yaw_deg"):
+            assert np.allclose(other[col], ok[col], atol=2e-4), col
+        dots = np.abs(
+            np.sum(
+                other[["qw", "qx", "qy", "qz"]].to_numpy()
+                * ok[["qw", "qx", "qy", "qz"]].to_numpy(),
+                axis=1,
+            )
+        )
+        assert dots.min() > 1 - 1e-9
+
+
+def test_run_yields_the_cli_poses(orbit_run, sample_model):
+    """track.run in-process gives the rows the CLI wrote (the first 40 frames)."""
+    csv, _, _ = orbit_run
+    cli = read_pose_csv(csv).iloc[:40]
+    model = LandmarkModel.load(sample_model)
+    src = FrameSource([SAMPLE / "orbit.mp4"])
+    recs = list(track.run(src.frames(end=40), Tracker(model, model.camera, TrackSettings())))
+    assert [r.frame for r in recs] == list(range(40))
+    assert [str(r.status) for r in recs] == cli["status"].tolist()
+    assert np.allclose([r.time_s for r in recs], cli["time_s"], atol=1e-6)
+    for r, (_, row) in zip(recs, cli.iterrows(), strict=True):
+        assert r.inliers == row["inliers"] and r.keyframe == row["keyframe"]
+        if r.ok:
+            assert (
+                r.pose.distance_to(row_pose(row)) < 2e-6 and r.pose.angle_to(row_pose(row)) < 1e-5
+            )
 
 
 def test_deterministic_with_overlay(sample_model, tmp_path, mirage):

@@ -4,7 +4,17 @@ import pytest
 
 from mirage_cli.errors import InputError
 from mirage_cli.pose import Pose
-from mirage_cli.posecsv import POSE_COLUMNS, PoseCSVWriter, read_pose_csv, row_pose
+from mirage_cli.trajectory import (
+    FORMATS,
+    POSE_COLUMNS,
+    FrameRecord,
+    Status,
+    TrajectoryWriter,
+    read_pose_csv,
+    read_trajectory,
+    row_pose,
+    write_trajectory,
+)
 
 
 def some_poses(n=5):
@@ -15,10 +25,10 @@ def some_poses(n=5):
 def test_round_trip(tmp_path):
     poses = some_poses()
     path = tmp_path / "p.csv"
-    with PoseCSVWriter(path, ["inliers"]) as w:
+    with TrajectoryWriter(path, "csv", ["inliers"]) as w:
         for i, p in enumerate(poses):
-            w.write(i, i / 30, "ok", p, inliers=10 + i)
-        w.write(5, 5 / 30, "lost", None)
+            w.write(FrameRecord(Status.OK, p, i, i / 30, inliers=10 + i))
+        w.write(FrameRecord(Status.LOST, None, 5, 5 / 30))
     raw = pd.read_csv(path)
     assert list(raw.columns) == POSE_COLUMNS + ["inliers"]
     df = read_pose_csv(path)
@@ -32,8 +42,8 @@ def test_round_trip(tmp_path):
 
 def test_rows_are_flushed_before_close(tmp_path):
     path = tmp_path / "p.csv"
-    w = PoseCSVWriter(path)
-    w.write(0, 0.0, "ok", some_poses(1)[0])
+    w = TrajectoryWriter(path)
+    w.write(FrameRecord(Status.OK, some_poses(1)[0], 0, 0.0))
     # the partial file already holds the row; the final path appears on close
     assert len(w.tmp.read_text().splitlines()) == 2
     assert not path.exists()
@@ -43,8 +53,8 @@ def test_rows_are_flushed_before_close(tmp_path):
 
 def test_interrupt_keeps_rows(tmp_path):
     path = tmp_path / "p.csv"
-    with pytest.raises(KeyboardInterrupt), PoseCSVWriter(path) as w:
-        w.write(0, 0.0, "ok", some_poses(1)[0])
+    with pytest.raises(KeyboardInterrupt), TrajectoryWriter(path) as w:
+        w.write(FrameRecord(Status.OK, some_poses(1)[0], 0, 0.0))
         raise KeyboardInterrupt
     assert len(path.read_text().splitlines()) == 2
 
@@ -52,8 +62,8 @@ def test_interrupt_keeps_rows(tmp_path):
 def test_error_keeps_previous_good_file(tmp_path):
     path = tmp_path / "p.csv"
     path.write_text("previous")
-    with pytest.raises(RuntimeError), PoseCSVWriter(path) as w:
-        w.write(0, 0.0, "ok", some_poses(1)[0])
+    with pytest.raises(RuntimeError), TrajectoryWriter(path) as w:
+        w.write(FrameRecord(Status.OK, some_poses(1)[0], 0, 0.0))
         raise RuntimeError("boom")
     assert path.read_text() == "previous"
 
@@ -98,7 +108,7 @@ def test_lost_rows_may_be_empty(tmp_path):
 
 
 def test_vectorised_angles_match_pose():
-    from mirage_cli.posecsv import derived_angles
+    from mirage_cli.trajectory import derived_angles
 
     poses = some_poses(200)
     got = derived_angles(
@@ -106,3 +116,46 @@ def test_vectorised_angles_match_pose():
     )
     want = np.array([[*p.rpy_deg, p.azimuth_deg] for p in poses])
     assert np.allclose(got, want, atol=1e-9)
+
+
+# --- records, statuses and the formats -------------------------------------------------
+def test_status_words_are_the_file_strings():
+    assert [s.value for s in Status] == ["ok", "lost", "decode_error", "size_mismatch"]
+    assert Status.OK == "ok" and f"{Status.DECODE_ERROR}" == "decode_error"
+    assert str(Status.LOST) == "lost" and Status("size_mismatch") is Status.SIZE_MISMATCH
+    rec = FrameRecord(Status.OK, some_poses(1)[0], 7, 0.25, inliers=40)
+    assert rec.ok and not FrameRecord().ok and FrameRecord().status is Status.LOST
+
+
+@pytest.mark.parametrize("fmt", sorted(FORMATS))
+def test_every_format_round_trips(tmp_path, fmt):
+    """Write ok and lost records, read them back: same poses (and times where kept)."""
+    poses = some_poses(6)
+    recs = [FrameRecord(Status.OK, p, i, 10 + i / 30) for i, p in enumerate(poses)]
+    recs.insert(2, FrameRecord(Status.DECODE_ERROR, None, 99, 99.0))
+    path = tmp_path / f"t.{fmt}"
+    write_trajectory(path, recs, fmt)
+    df = read_trajectory(path, fmt)
+    ok = df[df["status"] == Status.OK]
+    assert len(ok) == len(poses)
+    for (_, row), p in zip(ok.iterrows(), poses, strict=True):
+        q = row_pose(row)
+        assert q.distance_to(p) < 2e-6 and q.angle_to(p) < 1e-5
+        assert np.allclose([row.roll_deg, row.pitch_deg, row.yaw_deg], p.rpy_deg, atol=1e-3)
+    if fmt != "kitti":  # KITTI poses carry no times
+        assert ok["time_s"].to_numpy() == pytest.approx(10 + np.arange(6) / 30, abs=1e-6)
+
+
+def test_kitti_line_is_camera_to_world_row_major(tmp_path):
+    p = some_poses(1)[0]
+    write_trajectory(tmp_path / "k.txt", [FrameRecord(Status.OK, p, 0)], "kitti")
+    T = np.loadtxt(tmp_path / "k.txt").reshape(3, 4)
+    assert np.allclose(T[:, :3], p.R.T, atol=1e-8) and np.allclose(T[:, 3], p.center, atol=1e-6)
+
+
+@pytest.mark.parametrize("fmt, text", [("tum", "1 2 3\n"), ("kitti", "1 2 x 4\n"), ("tum", "")])
+def test_format_read_errors(tmp_path, fmt, text):
+    p = tmp_path / "bad.txt"
+    p.write_text(text)
+    with pytest.raises(InputError, match=fmt.upper()):
+        read_trajectory(p, fmt)

@@ -1,0 +1,355 @@
+"""Trajectories: the per-frame record, its status words, and reading / writing by format.
+
+One record type (`FrameRecord`) flows from tracking to every output; each file format is a
+row function plus an entry in `FORMATS` (and a reader), so a new format touches nothing
+else. The pose CSV (brief, section 3) is the one schema of track output, ground truth and
+build-model input; TUM and KITTI are for evo and friends.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import os
+import tempfile
+import warnings
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from .errors import InputError
+from .fileio import check_writable, read_csv, require_file
+from .pose import R_CB, Pose
+
+
+class Status(str, Enum):
+    """Every status word a frame can get; the str values are what files hold."""
+
+    OK = "ok"  # a trusted pose
+    LOST = "lost"  # not enough consistent evidence for a pose
+    DECODE_ERROR = "decode_error"  # the frame could not be decoded
+    SIZE_MISMATCH = "size_mismatch"  # a frame of another size than the sequence's camera
+
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
+
+
+@dataclass
+class FrameRecord:
+    """One frame of a trajectory: its id, time, status, pose and tracking diagnostics."""
+
+    status: Status = Status.LOST
+    pose: Pose | None = None  # T_CW; None unless ok
+    frame: int | str = ""  # video frame number or image file name
+    time_s: float = float("nan")
+    keyframe: str = ""
+    matches: int = 0
+    inliers: int = 0
+    rmse_px: float = float("nan")
+    iterations: int = 0
+    sigma_pos_m: float = float("nan")
+    sigma_rot_deg: float = float("nan")
+    ms: float = float("nan")  # processing time of the frame
+    mode: str = ""  # detect | flow
+    inlier_px: np.ndarray | None = field(default=None, repr=False)  # for overlays
+    image: np.ndarray | None = field(default=None, repr=False)  # the frame, when kept
+    extra: dict = field(default_factory=dict)  # other columns by name (landmark_visible)
+
+    @property
+    def ok(self) -> bool:
+        return self.status == Status.OK
+
+
+POSE_COLUMNS = [
+    "frame", "time_s", "status", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz",
+    "roll_deg", "pitch_deg", "yaw_deg", "azimuth_deg",
+]  # fmt: skip
+REQUIRED_INPUT = ["x_m", "y_m", "z_m", "qw", "qx", "qy", "qz"]
+# diagnostic columns of `mirage track`'s pose CSV, after the pose
+TRACK_COLUMNS = ["keyframe", "matches", "inliers", "reproj_rmse_px", "iterations",
+                 "sigma_pos_m", "sigma_rot_deg", "ms", "mode"]  # fmt: skip
+_ATTR = {"reproj_rmse_px": "rmse_px"}
+
+
+def pose_fields(pose: Pose | None) -> list[str]:
+    """The eleven pose cells of a row (empty strings when there is no pose)."""
+    if pose is None:
+        return [""] * 11
+    c, q, rpy = pose.center, pose.quat_wxyz, pose.rpy_deg
+    return (
+        [f"{v:.6f}" for v in c]
+        + [f"{v:.9f}" for v in q]
+        + [f"{v:.4f}" for v in rpy]
+        + [f"{pose.azimuth_deg:.4f}"]
+    )
+
+
+def _fmt(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float | np.floating):
+        return "" if not np.isfinite(v) else f"{float(v):.6g}"
+    return str(v)
+
+
+def _cell(rec: FrameRecord, column: str):
+    if column in rec.extra:
+        return rec.extra[column]
+    return getattr(rec, _ATTR.get(column, column), None)
+
+
+def _csv_line(cells: Sequence[str]) -> str:
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(cells)
+    return buf.getvalue()
+
+
+def _csv_row(rec: FrameRecord, index: int, extra: Sequence[str]) -> str:
+    t = "" if rec.time_s is None or not np.isfinite(rec.time_s) else f"{rec.time_s:.6f}"
+    cells = [str(rec.frame), t, str(rec.status)] + pose_fields(rec.pose if rec.ok else None)
+    return _csv_line(cells + [_fmt(_cell(rec, k)) for k in extra])
+
+
+def _tum_row(rec: FrameRecord, index: int, extra: Sequence[str]) -> str | None:
+    """`time tx ty tz qx qy qz qw` of T_WC, ok frames only; without times, the row number."""
+    if not rec.ok:
+        return None
+    ts = rec.time_s if rec.time_s is not None and np.isfinite(rec.time_s) else index
+    c, q = rec.pose.center, rec.pose.quat_wxyz
+    return (
+        f"{ts:.6f} {c[0]:.6f} {c[1]:.6f} {c[2]:.6f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f} {q[0]:.9f}\n"
+    )
+
+
+def _kitti_row(rec: FrameRecord, index: int, extra: Sequence[str]) -> str | None:
+    """The 3x4 camera-to-world matrix [R_WC | centre], row-major, ok frames only."""
+    if not rec.ok:
+        return None
+    T = np.column_stack([rec.pose.R_wc, rec.pose.center])
+    return " ".join(f"{v:.9f}" if j % 4 < 3 else f"{v:.6f}" for j, v in enumerate(T.ravel())) + "\n"
+
+
+@dataclass(frozen=True)
+class Format:
+    """A trajectory file format: its header, one line per record (None: no line), a reader."""
+
+    header: Callable[[Sequence[str]], str]
+    row: Callable[[FrameRecord, int, Sequence[str]], str | None]
+    read: Callable[[Path], pd.DataFrame]
+
+
+class TrajectoryWriter:
+    """Writes records as they come and flushes each, into a partial file until `close()`.
+
+    An interrupted run keeps every finished row in the partial file; `close(keep=True)`
+    (also on Ctrl-C) moves it into place, `close(keep=False)` discards it.
+    """
+
+    def __init__(self, path, fmt: str = "csv", extra_columns: Sequence[str] = ()):
+        self.path = check_writable(path)
+        self.format = FORMATS[fmt]
+        self.extra = list(extra_columns)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or "."
+        )
+        self.tmp = Path(tmp)
+        os.chmod(tmp, 0o644)
+        self._f = os.fdopen(fd, "w", newline="")
+        self._f.write(self.format.header(self.extra))
+        self._f.flush()
+        self.rows = 0
+
+    def write(self, rec: FrameRecord) -> None:
+        line = self.format.row(rec, self.rows, self.extra)
+        if line is not None:
+            self._f.write(line)
+            self._f.flush()
+        self.rows += 1
+
+    def close(self, keep: bool = True) -> None:
+        if self._f.closed:
+            return
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        self._f.close()
+        if keep:
+            os.replace(self.tmp, self.path)
+        else:
+            with contextlib.suppress(OSError):
+                self.tmp.unlink()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        # Ctrl-C keeps the frames done so far; an error keeps any good file already there.
+        self.close(keep=exc_type is None or issubclass(exc_type, KeyboardInterrupt))
+        return False
+
+
+def write_trajectory(
+    path, records: Iterable[FrameRecord], fmt: str = "csv", extra_columns: Sequence[str] = ()
+) -> None:
+    """Write a whole trajectory at once (truth files, keyframe poses)."""
+    with TrajectoryWriter(path, fmt, extra_columns) as w:
+        for rec in records:
+            w.write(rec)
+
+
+def read_trajectory(path, fmt: str = "csv") -> pd.DataFrame:
+    """Any format's file as a pose-CSV table (frame, time_s, status, pose, angles)."""
+    return FORMATS[fmt].read(path)
+
+
+def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
+    """Read and validate a pose CSV.
+
+    Returns a DataFrame with a `frame` column (from `frame` or `image`), `status`
+    (default "ok"), numeric pose columns (NaN where not ok) and the derived angle
+    columns recomputed from the quaternion. Every problem names the column and row.
+    """
+    p = require_file(path, "pose file")
+    header = f"a header row: {','.join(POSE_COLUMNS[:10])}"
+    df = read_csv(p, "pose file", header, dtype=str, keep_default_na=False)
+    if "frame" not in df.columns:
+        if "image" not in df.columns:
+            raise InputError(
+                f"pose file {p}: no 'frame' or 'image' column "
+                f"(columns found: {', '.join(df.columns)})"
+            )
+        df = df.rename(columns={"image": "frame"})
+    if require_pose:
+        missing = [c for c in REQUIRED_INPUT if c not in df.columns]
+        if missing:
+            raise InputError(f"pose file {p}: missing column(s) {', '.join(missing)}")
+    if df.empty:
+        raise InputError(f"pose file {p} has a header but no rows")
+    if "status" not in df.columns:
+        df["status"] = Status.OK.value
+    df["status"] = df["status"].str.strip().replace("", Status.OK.value)
+    ok = df["status"] == Status.OK
+    for col in ["time_s"] + REQUIRED_INPUT:
+        if col not in df.columns:
+            df[col] = np.nan
+            continue
+        raw = df[col].str.strip()
+        num = pd.to_numeric(raw, errors="coerce")
+        bad = (num.isna() & (raw != "")) | (ok & num.isna() & (col in REQUIRED_INPUT))
+        if bad.any():
+            i = int(np.flatnonzero(bad.to_numpy())[0])
+            what = repr(df[col].iloc[i]) if raw.iloc[i] else "an empty cell"
+            raise InputError(
+                f"pose file {p}: column '{col}' row {i + 2} (frame "
+                f"{df['frame'].iloc[i]}) has {what}, expected a number"
+            )
+        df[col] = num
+    if require_pose:
+        q = df.loc[ok, ["qw", "qx", "qy", "qz"]].to_numpy()
+        n = np.linalg.norm(q, axis=1)
+        if np.any(n < 1e-6):
+            i = int(np.flatnonzero(ok.to_numpy())[np.argmax(n < 1e-6)])
+            raise InputError(f"pose file {p}: row {i + 2} has a zero quaternion")
+        df.loc[ok, ["qw", "qx", "qy", "qz"]] = q / n[:, None]
+        angles = np.full((len(df), 4), np.nan)
+        okn = ok.to_numpy()
+        angles[okn] = derived_angles(
+            df.loc[ok, ["x_m", "y_m", "z_m"]].to_numpy(),
+            df.loc[ok, ["qw", "qx", "qy", "qz"]].to_numpy(),
+        )
+        df[["roll_deg", "pitch_deg", "yaw_deg", "azimuth_deg"]] = angles
+    df["frame"] = df["frame"].str.strip()
+    known = set(POSE_COLUMNS) | {"status"}
+    for col in df.columns:  # extra diagnostic columns: numeric when every cell is
+        if col not in known and not pd.api.types.is_numeric_dtype(df[col]):
+            raw = df[col].str.strip()
+            num = pd.to_numeric(raw, errors="coerce")
+            if not (num.isna() & (raw != "")).any():
+                df[col] = num
+    return df
+
+
+def derived_angles(centers: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """(N,4) roll, pitch, yaw (REP-103, camera body frame) and azimuth in degrees, for
+    camera centres (N,3) and unit quaternions (N,4) of R_WC: the file's derived columns."""
+    w, x, y, z = quats.T
+    # R_WC rows as in pose.matrix_from_quat, then R_WB = R_WC @ R_CB (body x = optical axis)
+    R = np.empty((len(quats), 3, 3))
+    R[:, 0] = np.column_stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)])
+    R[:, 1] = np.column_stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)])
+    R[:, 2] = np.column_stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)])
+    B = R @ R_CB
+    pitch = np.arctan2(-B[:, 2, 0], np.hypot(B[:, 0, 0], B[:, 1, 0]))
+    roll = np.arctan2(B[:, 2, 1], B[:, 2, 2])
+    yaw = np.arctan2(B[:, 1, 0], B[:, 0, 0])
+    az = np.degrees(np.arctan2(centers[:, 1], centers[:, 0]))
+    az[az <= -180.0] = 180.0
+    return np.column_stack([np.degrees(roll), np.degrees(pitch), np.degrees(yaw), az])
+
+
+def row_pose(row) -> Pose | None:
+    """Pose of one row of `read_pose_csv`'s frame (None when not ok)."""
+    if row.get("status", Status.OK) != Status.OK:
+        return None
+    return Pose.from_center_quat(
+        [row["x_m"], row["y_m"], row["z_m"]], [row["qw"], row["qx"], row["qy"], row["qz"]]
+    )
+
+
+def poses_by_frame(df: pd.DataFrame) -> dict[str, Pose]:
+    """Map frame id (as text) -> Pose for every ok row."""
+    return {str(r["frame"]): row_pose(r) for _, r in df.iterrows() if r["status"] == Status.OK}
+
+
+def _numbers(path, what: str, width: int) -> np.ndarray:
+    """The rows of a whitespace-separated numeric file ('#' comments), or a one-line error."""
+    p = require_file(path, f"{what} file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # an empty file is the error below, not a warning
+            a = np.loadtxt(p, comments="#", ndmin=2)
+    except ValueError as e:
+        raise InputError(f"{what} file {p}: {e}") from None
+    if a.size == 0 or a.shape[1] != width or not np.isfinite(a).all():
+        raise InputError(f"{what} file {p}: expected rows of {width} finite numbers")
+    return a
+
+
+def _pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.DataFrame:
+    """A pose-CSV table of ok rows (quaternions normalised, angles derived)."""
+    quats = quats / np.linalg.norm(quats, axis=1, keepdims=True)
+    df = pd.DataFrame({"frame": [str(f) for f in frames], "time_s": times})
+    df["status"] = Status.OK.value
+    df[["x_m", "y_m", "z_m"]] = centers
+    df[["qw", "qx", "qy", "qz"]] = quats
+    df[["roll_deg", "pitch_deg", "yaw_deg", "azimuth_deg"]] = derived_angles(centers, quats)
+    return df
+
+
+def read_tum(path) -> pd.DataFrame:
+    """A TUM file (`time tx ty tz qx qy qz qw`): frames are the row numbers."""
+    a = _numbers(path, "TUM", 8)
+    return _pose_table(range(len(a)), a[:, 0], a[:, 1:4], a[:, [7, 4, 5, 6]])
+
+
+def read_kitti(path) -> pd.DataFrame:
+    """A KITTI poses file (12 numbers of T_WC a line): frames are the row numbers, no times."""
+    T = _numbers(path, "KITTI", 12).reshape(-1, 3, 4)
+    q = Rotation.from_matrix(T[:, :, :3]).as_quat()[:, [3, 0, 1, 2]]
+    return _pose_table(range(len(T)), np.nan, T[:, :, 3], q)
+
+
+TUM_HEADER = "# timestamp tx ty tz qx qy qz qw (mirage track, camera-to-world)\n"
+
+FORMATS: dict[str, Format] = {
+    "csv": Format(lambda extra: _csv_line(POSE_COLUMNS + list(extra)), _csv_row, read_pose_csv),
+    "tum": Format(lambda extra: TUM_HEADER, _tum_row, read_tum),
+    "kitti": Format(lambda extra: "", _kitti_row, read_kitti),
+}
