@@ -253,14 +253,11 @@ class BoardPoser:
         spread = np.linalg.svd(obj[:, :2] - obj[:, :2].mean(0), compute_uv=False)
         if spread[1] < 0.5 * max(self.spec.square_m, self.spec.marker_m):
             return None, "board corners nearly collinear"
+        cam, ideal = self.camera.standard(), self.camera.ideal_pixels(img)  # any lens model
         try:
-            ok, rvec, tvec = cv2.solvePnP(
-                obj, img, self.camera.K, self.camera.dist, flags=cv2.SOLVEPNP_IPPE
-            )
+            ok, rvec, tvec = cv2.solvePnP(obj, ideal, cam.K, cam.dist, flags=cv2.SOLVEPNP_IPPE)
             if ok:
-                rvec, tvec = cv2.solvePnPRefineLM(
-                    obj, img, self.camera.K, self.camera.dist, rvec, tvec
-                )
+                rvec, tvec = cv2.solvePnPRefineLM(obj, ideal, cam.K, cam.dist, rvec, tvec)
         except cv2.error as e:
             return None, f"pose from board failed ({str(e).strip().splitlines()[-1]})"
         if not ok:

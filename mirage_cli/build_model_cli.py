@@ -17,6 +17,7 @@ from .build_model import (
     views_from_inputs,
 )
 from .camera import Camera
+from .config import default_of
 from .errors import InputError
 from .features import DETECTORS, DetectorSettings
 from .fileio import atomic_path, check_writable
@@ -88,15 +89,22 @@ class _Stages:
 @click.option(
     "--spacing-deg",
     type=click.FloatRange(1, 90),
-    default=10.0,
+    default=BuildSettings.spacing_deg,
     show_default=True,
     help="One keyframe per this much azimuth (per elevation band).",
 )
-@click.option("--detector", type=click.Choice(DETECTORS), default="sift", show_default=True)
-@click.option("--nfeatures", type=click.IntRange(min=50), default=2000, show_default=True)
+@click.option(
+    "--detector", type=click.Choice(DETECTORS), default=DetectorSettings.name, show_default=True
+)
+@click.option(
+    "--nfeatures",
+    type=click.IntRange(min=50),
+    default=DetectorSettings.nfeatures,
+    show_default=True,
+)
 @click.option(
     "--roi",
-    default="auto",
+    default=default_of(BuildSettings, "roi").kind,
     show_default=True,
     help="Volume of interest: auto | none | R,ZMIN,ZMAX (cylinder about the origin) | "
     "XMIN,XMAX,YMIN,YMAX,ZMIN,ZMAX (box), metres.",
@@ -104,14 +112,14 @@ class _Stages:
 @click.option(
     "--max-reproj-px",
     type=click.FloatRange(min=0.1),
-    default=2.0,
+    default=BuildSettings.max_reproj_px,
     show_default=True,
     help="Keep points that reproject within this in every view.",
 )
 @click.option(
     "--min-angle-deg",
     type=click.FloatRange(min=0),
-    default=2.5,
+    default=BuildSettings.min_angle_deg,
     show_default=True,
     help="Minimum triangulation angle.",
 )

@@ -11,6 +11,7 @@ from . import ui
 from .calibrate import Board, CalibOptions, Calibration, Detections, detect_images, detect_video
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
+from .config import default_of
 from .fileio import atomic_path, check_writable
 from .frames import FrameSource, resolve_inputs
 
@@ -82,21 +83,21 @@ def _positive(ctx, param, value):
 @click.option(
     "--every",
     type=click.IntRange(min=1),
-    default=10,
+    default=default_of(detect_video, "every"),
     show_default=True,
     help="Video: look at every K-th frame.",
 )
 @click.option(
     "--min-motion",
     type=float,
-    default=8.0,
+    default=default_of(detect_video, "min_motion_px"),
     show_default=True,
     help="Video: skip views whose corners moved less than this (px).",
 )
 @click.option(
     "--model",
     type=click.Choice(["5", "8"]),
-    default="5",
+    default=str(CalibOptions.model),
     show_default=True,
     help="Distortion coefficients: 5 (k1 k2 p1 p2 k3) or 8 (rational).",
 )
@@ -113,7 +114,7 @@ def _positive(ctx, param, value):
 @click.option(
     "--reject-factor",
     type=float,
-    default=3.0,
+    default=CalibOptions.reject_factor,
     show_default=True,
     callback=_positive,
     help="Outlier views: RMS above this x median.",

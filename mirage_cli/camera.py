@@ -1,7 +1,11 @@
 """Pinhole camera with OpenCV lens distortion, and its YAML file (brief, section 3).
 
-The file is written with cv2.FileStorage so OpenCV (and any C++ tool) reads it back;
-ROS `camera_info` YAML files are read too.
+The file is written with cv2.FileStorage so OpenCV (and any C++ tool) reads it back.
+ROS `camera_info` is read in its common spellings: the calibration YAML of
+camera_calibration / camera_info_manager, and `rostopic echo` / `ros2 topic echo` output
+(`K`/`D` or `k`/`d`). Two lens models: OpenCV's standard one (ROS `plumb_bob`,
+`rational_polynomial`) and its fisheye one (ROS `equidistant`, 4 coefficients), which
+must never be read as the other: the same numbers mean a different lens.
 """
 
 from __future__ import annotations
@@ -17,10 +21,25 @@ from .errors import InputError, cv_message
 from .fileio import atomic_path, require_file
 from .pose import Pose
 
+PINHOLE, FISHEYE = "pinhole", "fisheye"
+# distortion_model names (ROS and OpenCV files) -> lens model
+LENS_MODELS = {
+    "plumb_bob": PINHOLE,
+    "rational_polynomial": PINHOLE,
+    "pinhole": PINHOLE,
+    "radtan": PINHOLE,
+    "equidistant": FISHEYE,
+    "fisheye": FISHEYE,
+}
+_CRIT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+
 
 @dataclass
 class Camera:
-    """Intrinsics K (3x3), distortion coefficients (OpenCV order) and image size in px."""
+    """Intrinsics K (3x3), distortion coefficients (OpenCV order) and image size in px.
+
+    `model` is "pinhole" (OpenCV's standard distortion: k1 k2 p1 p2 [k3 [k4 k5 k6 ...]])
+    or "fisheye" (OpenCV's fisheye / ROS equidistant model: k1 k2 k3 k4)."""
 
     K: np.ndarray
     dist: np.ndarray
@@ -28,17 +47,35 @@ class Camera:
     height: int
     rms_px: float | None = None
     meta: dict = field(default_factory=dict)  # board, views used, per-view errors, ...
+    model: str = PINHOLE
 
     def __post_init__(self):
         self.K = np.asarray(self.K, dtype=float).reshape(3, 3)
         self.dist = np.asarray(self.dist, dtype=float).ravel()
         if self.dist.size == 0:
-            self.dist = np.zeros(5)
+            self.dist = np.zeros(4 if self.model == FISHEYE else 5)
+        if self.model not in (PINHOLE, FISHEYE):
+            raise InputError(f"unknown lens model {self.model!r}: use pinhole or fisheye")
         self.width, self.height = int(self.width), int(self.height)
         if self.width <= 0 or self.height <= 0:
             raise InputError(f"camera image size must be positive, got {self.width}x{self.height}")
         if not np.all(np.isfinite(self.K)) or self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
             raise InputError("camera matrix must be finite with positive focal lengths")
+        if not np.allclose(self.K[2], [0.0, 0.0, 1.0], rtol=0, atol=1e-9):
+            raise InputError(
+                f"camera matrix bottom row must be [0, 0, 1], got {np.round(self.K[2], 6).tolist()}"
+            )
+        if not np.all(np.isfinite(self.dist)):
+            raise InputError("distortion coefficients must be finite")
+        if self.model == FISHEYE and self.dist.size != 4:
+            raise InputError(
+                f"the fisheye (equidistant) model has 4 distortion coefficients, "
+                f"got {self.dist.size}"
+            )
+        if self.model == PINHOLE and self.dist.size not in (4, 5, 8, 12, 14):
+            raise InputError(
+                f"{self.dist.size} distortion coefficients: OpenCV takes 4, 5, 8, 12 or 14"
+            )
 
     # --- accessors ----------------------------------------------------------------------
     @property
@@ -75,7 +112,16 @@ class Camera:
         X = np.ascontiguousarray(np.asarray(points_w, float).reshape(-1, 3))
         if len(X) == 0:
             return np.zeros((0, 2))
-        uv, _ = cv2.projectPoints(X, pose.rvec, pose.t, self.K, self.dist)
+        if self.model == FISHEYE:
+            uv, _ = cv2.fisheye.projectPoints(
+                X.reshape(-1, 1, 3),
+                pose.rvec.reshape(3, 1),
+                pose.t.reshape(3, 1),
+                self.K,
+                self.dist,
+            )
+        else:
+            uv, _ = cv2.projectPoints(X, pose.rvec, pose.t, self.K, self.dist)
         return uv.reshape(-1, 2)
 
     def undistort_points(self, pixels) -> np.ndarray:
@@ -83,9 +129,26 @@ class Camera:
         uv = np.ascontiguousarray(np.asarray(pixels, float).reshape(-1, 1, 2))
         if len(uv) == 0:
             return np.zeros((0, 2))
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-        xy = cv2.undistortPoints(uv, self.K, self.dist, None, None, None, crit)
+        if self.model == FISHEYE:
+            xy = cv2.fisheye.undistortPoints(uv, self.K, self.dist, None, None, None, _CRIT)
+        else:
+            xy = cv2.undistortPoints(uv, self.K, self.dist, None, None, None, _CRIT)
         return xy.reshape(-1, 2)
+
+    def ideal_pixels(self, pixels) -> np.ndarray:
+        """Pixels (N,2) as `standard()` sees them: hands a fisheye camera's points to code
+        and OpenCV solvers that know only the standard model (unchanged for pinhole)."""
+        if self.model == PINHOLE:
+            return np.asarray(pixels, float).reshape(-1, 2)
+        xy = self.undistort_points(pixels)
+        return xy @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def standard(self) -> Camera:
+        """This camera in OpenCV's standard model, seeing `ideal_pixels`: itself for a
+        pinhole camera, the distortion-free pinhole with the same K for a fisheye."""
+        if self.model == PINHOLE:
+            return self
+        return Camera(self.K.copy(), np.zeros(5), self.width, self.height, self.rms_px)
 
     def pixel_rays(self, pixels) -> np.ndarray:
         """Unit viewing rays (N,3) in the camera frame through the given pixels."""
@@ -102,11 +165,12 @@ class Camera:
         # pixel centres: OpenCV's cx refers to pixel centres at integer coordinates
         K[0, 2] = (self.cx + 0.5) * sx - 0.5
         K[1, 2] = (self.cy + 0.5) * sy - 0.5
-        return Camera(K, self.dist.copy(), width, height, self.rms_px, dict(self.meta))
+        return Camera(K, self.dist.copy(), width, height, self.rms_px, dict(self.meta), self.model)
 
     def same_as(self, other: Camera, tol_px: float = 0.5) -> bool:
         return (
-            self.size == other.size
+            self.model == other.model
+            and self.size == other.size
             and np.allclose(self.K, other.K, atol=tol_px)
             and np.allclose(self._dist5(), other._dist5(), atol=1e-4)
         )
@@ -125,6 +189,8 @@ class Camera:
             fs.write("image_height", self.height)
             fs.write("camera_matrix", self.K)
             fs.write("distortion_coefficients", self.dist.reshape(1, -1))
+            if self.model == FISHEYE:  # OpenCV has no key for it; ROS's name, read back
+                fs.write("distortion_model", "equidistant")
             if self.rms_px is not None:
                 fs.write("rms_px", float(self.rms_px))
             for key, value in self.meta.items():
@@ -133,18 +199,25 @@ class Camera:
 
     @classmethod
     def load(cls, path) -> Camera:
+        """An OpenCV FileStorage camera YAML or a ROS camera_info in any common spelling.
+        Every failure is an InputError naming the file."""
         p = require_file(path, "camera file")
         text = p.read_text(errors="replace")
-        if text.lstrip().startswith("%YAML"):
-            return cls._load_opencv(p)
-        return cls._load_plain(p, text)
+        try:
+            if text.lstrip().startswith("%YAML"):
+                return cls._load_opencv(p)
+            return cls._load_plain(p, text)
+        except InputError as e:
+            msg = str(e)
+            raise InputError(msg if str(p) in msg else f"camera file {p}: {msg}") from None
 
     @classmethod
     def _load_opencv(cls, p: Path) -> Camera:
+        # FileStorage raises cv2.error, and SystemError on some truncated files
         try:
             fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
-        except cv2.error as e:
-            raise InputError(f"camera file {p} is not valid OpenCV YAML: {cv_message(e)}") from None
+        except (cv2.error, SystemError) as e:
+            raise InputError(_garbled(p, e)) from None
         try:
             K = fs.getNode("camera_matrix").mat()
             dist = fs.getNode("distortion_coefficients").mat()
@@ -160,44 +233,105 @@ class Camera:
                 node = fs.getNode(key)
                 if not node.empty():
                     meta[key] = node.string() if node.isString() else node.real()
-            return cls(K, np.zeros(5) if dist is None else dist, int(w), int(h), rms, meta)
+            node = fs.getNode("distortion_model")
+            name = node.string() if not node.empty() and node.isString() else None
+            model = _lens_model(p, name)
+            dist = np.zeros(0) if dist is None else dist
+            return cls(K, dist, int(w), int(h), rms, meta, model)
+        except (cv2.error, SystemError) as e:
+            raise InputError(_garbled(p, e)) from None
         finally:
             fs.release()
 
     @classmethod
     def _load_plain(cls, p: Path, text: str) -> Camera:
-        """ROS camera_info YAML (camera_matrix: {rows, cols, data}) or plain lists."""
+        """ROS camera_info: the calibration YAML (image_width, camera_matrix: {rows, cols,
+        data}, distortion_coefficients, distortion_model) or `topic echo` output of
+        sensor_msgs/CameraInfo (width, height, K/k and D/d as flat lists, then `---`)."""
         try:
-            d = yaml.safe_load(text)
+            docs = [d for d in yaml.safe_load_all(text) if d is not None]
         except yaml.YAMLError as e:
             raise InputError(
                 f"camera file {p} is not valid YAML: {str(e).strip().splitlines()[0]}"
             ) from None
-        if not isinstance(d, dict):
+        if not docs or not isinstance(docs[0], dict):
             raise InputError(f"camera file {p} does not hold a camera (expected a mapping)")
+        d = docs[0]  # `topic echo` may print several messages; they describe one camera
 
-        def matrix(key, required=True):
-            v = d.get(key)
-            if v is None:
-                if required:
-                    raise InputError(f"camera file {p}: '{key}' missing")
-                return None
-            data = v.get("data") if isinstance(v, dict) else v
+        def get(*keys):
+            key = next((k for k in keys if k in d), None)
+            return key, (d[key] if key is not None else None)
+
+        def matrix(keys, size=None):
+            key, v = get(*keys)
+            if key is None:
+                return None, None
+            data = v
+            if isinstance(v, dict):
+                data = v.get("data")
+                if data is None:
+                    raise InputError(f"camera file {p}: '{key}' has no 'data'")
             try:
-                return np.asarray(data, dtype=float)
+                a = np.asarray(data, dtype=float)
             except (TypeError, ValueError):
-                raise InputError(f"camera file {p}: '{key}' is not numeric") from None
+                raise InputError(f"camera file {p}: '{key}' is not a list of numbers") from None
+            if a.ndim > 2 or (a.ndim == 2 and a.shape[0] * a.shape[1] != a.size):
+                raise InputError(f"camera file {p}: '{key}' is not a matrix of numbers")
+            if isinstance(v, dict) and "rows" in v and "cols" in v:
+                try:
+                    rows, cols = int(v["rows"]), int(v["cols"])
+                except (TypeError, ValueError):
+                    raise InputError(f"camera file {p}: '{key}' rows/cols not integers") from None
+                if rows * cols != a.size:
+                    raise InputError(
+                        f"camera file {p}: '{key}' says {rows}x{cols} but has {a.size} numbers"
+                    )
+            if size is not None and a.size != size:
+                raise InputError(f"camera file {p}: '{key}' must have {size} numbers, has {a.size}")
+            return key, a.ravel()
 
-        K = matrix("camera_matrix")
-        if K is None or K.size != 9:
-            raise InputError(f"camera file {p}: 'camera_matrix' must have 9 numbers")
-        dist = matrix("distortion_coefficients", required=False)
+        key, K = matrix(("camera_matrix", "K", "k"), 9)
+        if key is None:
+            raise InputError(f"camera file {p}: 'camera_matrix' (or K / k) missing")
+        _, dist = matrix(("distortion_coefficients", "D", "d"))
         try:
-            w, h = int(d["image_width"]), int(d["image_height"])
-        except (KeyError, TypeError, ValueError):
-            raise InputError(f"camera file {p}: 'image_width'/'image_height' missing") from None
+            wkey, w = get("image_width", "width")
+            hkey, h = get("image_height", "height")
+            w, h = int(w), int(h)
+        except (TypeError, ValueError):
+            raise InputError(
+                f"camera file {p}: 'image_width'/'image_height' (or width/height) missing "
+                "or not integers"
+            ) from None
+        if w == 0 and h == 0:
+            raise InputError(
+                f"camera file {p}: image size is 0x0 (an uncalibrated camera_info message?)"
+            )
         rms = d.get("rms_px")
-        return cls(K.reshape(3, 3), np.zeros(5) if dist is None else dist, w, h, rms)
+        if rms is not None and not isinstance(rms, int | float):
+            raise InputError(f"camera file {p}: 'rms_px' must be a number")
+        model = _lens_model(p, d.get("distortion_model"))
+        K = K.reshape(3, 3)
+        return cls(K, np.zeros(0) if dist is None else dist, w, h, rms, {}, model)
+
+
+def _garbled(p: Path, e: Exception) -> str:
+    why = "" if isinstance(e, SystemError) else f": {cv_message(e)}"
+    return f"camera file {p} is not valid OpenCV YAML (truncated or garbled?){why}"
+
+
+def _lens_model(p: Path, name) -> str:
+    """The lens model of a distortion_model name; an unknown name is refused, because
+    reading its coefficients as another model's would silently misplace every pixel."""
+    if name is None or name == "":
+        return PINHOLE
+    model = LENS_MODELS.get(str(name).strip().lower())
+    if model is None:
+        raise InputError(
+            f"camera file {p}: distortion_model {name!r} is not supported "
+            f"(use one of {', '.join(LENS_MODELS)})"
+        )
+    return model
 
 
 def _fs_write(fs, key, value) -> None:

@@ -8,12 +8,11 @@ from __future__ import annotations
 
 import sys
 import traceback
-from pathlib import Path
 
 import click
 
 from . import __version__, ui
-from .config import load_config
+from .config import check_config, read_config
 from .errors import MirageError
 
 _debug = {"on": False}
@@ -39,36 +38,9 @@ def cli(ctx, config_path, verbose, quiet, debug):
     """
     _debug["on"] = debug
     ui.setup(verbose, quiet)
-    cfg, src = load_config(config_path)
-    base = src.parent if src is not None else None
-    ctx.default_map = {
-        name: _by_param_name(cli.commands.get(name), opts, base) for name, opts in cfg.items()
-    }
-    ctx.obj = {"config": cfg, "config_path": src}
-
-
-def _by_param_name(cmd, opts: dict, base: Path | None = None) -> dict:
-    """Config keys are the flags users know (`model` for --model); click's default_map
-    wants its parameter names (`model_path`). Relative file options are taken relative to
-    the config file, so `--config project/mirage.yaml` works from anywhere. Unknown keys
-    are kept as given."""
-    if cmd is None:
-        return opts
-    names, paths = {}, set()
-    for p in cmd.params:
-        names[p.name] = p.name
-        for flag in getattr(p, "opts", []) + getattr(p, "secondary_opts", []):
-            if flag.startswith("--"):
-                names[flag[2:].replace("-", "_")] = p.name
-        if isinstance(p.type, click.Path):
-            paths.add(p.name)
-    out = {}
-    for k, v in opts.items():
-        name = names.get(k, k)
-        if base is not None and name in paths and isinstance(v, str) and v:
-            v = str(base / v) if not Path(v).is_absolute() else v
-        out[name] = v
-    return out
+    raw, src = read_config(config_path)
+    ctx.default_map = check_config(raw, cli.commands, src) if src is not None else {}
+    ctx.obj = {"config": ctx.default_map, "config_path": src}
 
 
 def _register() -> None:

@@ -187,6 +187,7 @@ class LandmarkModel:
                 "height": self.camera.height,
                 "K": self.camera.K.tolist(),
                 "dist": self.camera.dist.tolist(),
+                **({"model": self.camera.model} if self.camera.model != "pinhole" else {}),
             },
             "detector": self.detector.to_dict(),
             "keyframes": [
@@ -293,7 +294,13 @@ class LandmarkModel:
     @classmethod
     def _from_parts(cls, manifest: dict, a: dict) -> LandmarkModel:
         c = manifest["camera"]
-        camera = Camera(np.array(c["K"]), np.array(c["dist"]), c["width"], c["height"])
+        camera = Camera(
+            np.array(c["K"]),
+            np.array(c["dist"]),
+            c["width"],
+            c["height"],
+            model=c.get("model", "pinhole"),
+        )
         detector = DetectorSettings.from_dict(manifest["detector"])
         desc = a["descriptors"]
         if detector.name == "sift":

@@ -415,6 +415,8 @@ def _solve(
         return _fail(v, _count(points_3d), method)
     X, u, planar = v
     n = len(X)
+    if camera.model != "pinhole":  # OpenCV's PnP solvers and the fast path: one lens model
+        u, camera = camera.ideal_pixels(u), camera.standard()
     if reference_pose is not None and not (
         np.isfinite(reference_pose.R).all() and np.isfinite(reference_pose.t).all()
     ):

@@ -14,6 +14,7 @@ import yaml
 from . import synth, ui
 from .calibrate_cli import parse_board
 from .camera import Camera
+from .config import default_of
 from .errors import InputError, OutputError
 from .fileio import atomic_path, atomic_write, ensure_dir
 from .render import Renderer, stable_rng
@@ -84,27 +85,27 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 @click.option(
     "--keyframe-step",
     type=click.FloatRange(min=1, max=180),
-    default=10.0,
+    default=default_of(synth.keyframe_poses, "step_deg"),
     show_default=True,
     help="Keyframe spacing in azimuth (deg).",
 )
 @click.option(
     "--heights",
-    default="0.6",
+    default=",".join(map(str, default_of(synth.keyframe_poses, "heights"))),
     show_default=True,
     help="Keyframe camera heights (m), comma-separated.",
 )
 @click.option(
     "--radius",
     type=click.FloatRange(min=0.8),
-    default=1.4,
+    default=default_of(synth.keyframe_poses, "radius"),
     show_default=True,
     help="Keyframe circle radius (m).",
 )
 @click.option(
     "--duration",
     type=click.FloatRange(min=0.1),
-    default=18.0,
+    default=synth.OrbitPath.duration_s,
     show_default=True,
     help="Orbit video length (s).",
 )
@@ -123,7 +124,12 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     show_default=True,
     help="Sub-frame renders averaged over half a frame interval (1 = off).",
 )
-@click.option("--jpeg-quality", type=click.IntRange(50, 100), default=95, show_default=True)
+@click.option(
+    "--jpeg-quality",
+    type=click.IntRange(50, 100),
+    default=default_of(synth.encode_jpeg, "quality"),
+    show_default=True,
+)
 @click.option(
     "--jobs", type=click.IntRange(min=1), default=2, show_default=True, help="Render processes."
 )

@@ -91,7 +91,9 @@ def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: floa
     type=click.Path(dir_okay=False),
     help="Pose CSV to write.",
 )
-@click.option("--method", type=click.Choice(METHODS), default="mirage-s", show_default=True)
+@click.option(
+    "--method", type=click.Choice(METHODS), default=TrackSettings.method, show_default=True
+)
 @click.option("--start", default=None, help="First frame: frame number or seconds ('4s').")
 @click.option("--end", default=None, help="Stop before this frame / time.")
 @click.option(
@@ -110,16 +112,21 @@ def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: floa
 @click.option(
     "--redetect-every",
     type=click.IntRange(min=1),
-    default=5,
+    default=TrackSettings.redetect_every,
     show_default=True,
     help="Full feature detection at least every N frames (optical flow between).",
 )
 @click.option("--no-flow", is_flag=True, help="Detect and match in every frame (slower).")
-@click.option("--min-inliers", type=click.IntRange(min=4), default=15, show_default=True)
+@click.option(
+    "--min-inliers",
+    type=click.IntRange(min=4),
+    default=TrackSettings.min_inliers,
+    show_default=True,
+)
 @click.option(
     "--max-rmse",
     type=click.FloatRange(min=0, min_open=True),
-    default=2.0,
+    default=TrackSettings.max_rmse_px,
     show_default=True,
     help="Largest reprojection RMS (px) of an ok frame.",
 )
