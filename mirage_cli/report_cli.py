@@ -10,7 +10,7 @@ from . import ui
 from .fileio import atomic_write, check_writable
 from .path import load_path
 from .report import Report, make_report, plot_report
-from .trajectory import read_pose_csv
+from .trajectory import guess_format, match_times, read_pose_csv, read_trajectory
 
 _UNITS = {"_m": "m", "_deg": "deg"}
 
@@ -64,7 +64,8 @@ def summary_lines(s: dict) -> list[str]:
 @click.option(
     "--truth",
     type=click.Path(dir_okay=False),
-    help="Ground-truth pose CSV: adds position and rotation error (joined by frame).",
+    help="Ground truth: pose CSV (joined by frame) or TUM file (nearest time within 10 ms); "
+    "adds position and rotation error.",
 )
 @click.option(
     "-o",
@@ -89,7 +90,12 @@ def report_cmd(poses, path, truth, output, summary, plot):
             check_writable(out)
     desired = load_path(path)
     table = read_pose_csv(poses)
-    truth_df = read_pose_csv(truth) if truth else None
+    truth_df = None
+    if truth:
+        fmt = guess_format(truth)
+        truth_df = read_trajectory(truth, fmt)
+        if fmt != "csv":  # no frame ids: the pose frames nearest in time
+            truth_df = match_times(truth_df, table)
     publish_report(make_report(table, desired, truth_df), desired, output, summary, plot)
 
 

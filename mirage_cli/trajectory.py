@@ -204,9 +204,46 @@ def write_trajectory(
             w.write(rec)
 
 
-def read_trajectory(path, fmt: str = "csv") -> pd.DataFrame:
-    """Any format's file as a pose-CSV table (frame, time_s, status, pose, angles)."""
-    return FORMATS[fmt].read(path)
+def read_trajectory(path, fmt: str | None = None) -> pd.DataFrame:
+    """Any format's file as a pose-CSV table (frame, time_s, status, pose, angles);
+    the format is guessed (`guess_format`) unless given."""
+    return FORMATS[fmt or guess_format(path)].read(path)
+
+
+def guess_format(path) -> str:
+    """'csv' for a .csv file; otherwise by the first data line: 8 numbers TUM, 12 KITTI."""
+    p = Path(path)
+    if p.suffix.lower() == ".csv" or not p.is_file():
+        return "csv"
+    with open(p, errors="replace") as f:
+        for line in f:
+            fields = line.split()
+            if fields and not fields[0].startswith("#"):
+                return {8: "tum", 12: "kitti"}.get(len(fields), "csv")
+    return "csv"
+
+
+def match_times(truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01) -> pd.DataFrame:
+    """Truth rows renamed to the pose frames nearest in time (within `max_dt` s, one truth
+    row per frame), for truth that has times but not the poses' frame ids (TUM)."""
+    t = truth["time_s"].to_numpy(float)
+    pt = poses["time_s"].to_numpy(float)
+    if not (np.isfinite(t).all() and np.isfinite(pt).any()):
+        raise InputError("matching truth by time needs times in both files (time_s column)")
+    order = np.argsort(t)
+    t = t[order]
+    j = np.searchsorted(t, pt)
+    cand = np.clip(np.stack([j - 1, j]), 0, len(t) - 1)  # the neighbours on either side
+    near = cand[np.argmin(np.abs(t[cand] - pt), axis=0), np.arange(len(pt))]
+    hit = np.abs(t[near] - pt) <= max_dt
+    if not hit.any():
+        raise InputError(
+            f"truth times ({t[0]:.3f}-{t[-1]:.3f} s) do not overlap the pose times within "
+            f"{max_dt * 1000:g} ms; is it the truth of this video?"
+        )
+    rows = truth.iloc[order[near[hit]]].copy()
+    rows["frame"] = poses["frame"].to_numpy()[hit]
+    return rows.reset_index(drop=True)
 
 
 def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:

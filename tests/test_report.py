@@ -150,6 +150,26 @@ def test_truth_errors_and_lost_frames(tmp_path):
     assert s["longest_lost"]["first_frame"] == "10"
 
 
+def test_tum_truth_is_matched_by_time(tmp_path, mirage):
+    """A TUM truth (times, no frame ids, its own rate) gives the errors a CSV truth gives."""
+    truth = circle_poses(1.6, n=100)
+    est = [Pose.from_center(p.R_wc, p.center + [0.03, 0.0, -0.04]) for p in truth[::2]]
+    f = write(tmp_path, "est.csv", est, times=np.arange(50) / 10)
+    recs = [FrameRecord(Status.OK, p, i, i / 20 + 0.002) for i, p in enumerate(truth)]
+    write_trajectory(tmp_path / "truth.txt", recs[::-1], "tum")  # any order
+    out = tmp_path / "r.csv"
+    proc = mirage("report", f, "--path", circle_yaml(tmp_path), "--truth", tmp_path / "truth.txt",
+                  "-o", out)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    df = pd.read_csv(out)
+    assert len(df) == 50 and np.abs(df["position_error_m"] - 0.05).max() < 1e-5
+    assert df["rotation_error_deg"].abs().max() < 1e-3
+    # truth 0.5 s away from every frame matches nothing: a one-line error
+    write_trajectory(tmp_path / "late.txt", [FrameRecord(Status.OK, truth[0], 0, 100.0)], "tum")
+    proc = mirage("report", f, "--path", circle_yaml(tmp_path), "--truth", tmp_path / "late.txt")
+    assert_one_line_error(proc, 2, "overlap")
+
+
 def test_longest_run():
     assert longest_run(np.array([0, 1, 1, 0, 1, 1, 1], bool)) == (3, 4)
     assert longest_run(np.zeros(5, bool)) == (0, -1)
