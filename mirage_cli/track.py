@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from .camera import Camera
-from .features import detect, make_detector, norm_type, ratio_match
+from .features import detect, make_detector, make_matcher, ratio_match
 from .frames import Frame
 from .model import LandmarkModel
 from .pose import Pose
@@ -59,7 +59,7 @@ class Tracker:
         self.keyframe = -1
         self.track_px: np.ndarray | None = None  # (N,2) float32 inliers in prev frame
         self.track_X: np.ndarray | None = None  # (N,3) their model points
-        self.matcher = cv2.BFMatcher(norm_type(model.detector))
+        self.matcher = make_matcher(model.detector)
         self._kf_cache: dict[int, tuple] = {}
 
     # ------------------------------------------------------------------------------------
