@@ -22,7 +22,7 @@ from .features import detect, make_detector, make_matcher, ratio_match
 from .frames import Frame
 from .model import LandmarkModel
 from .pose import Pose
-from .solver import PoseEstimate, solve_pose
+from .solver import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from .trajectory import FrameRecord, Status
 
 
@@ -114,8 +114,7 @@ class Tracker:
             self.camera,
             reference_pose=self.prev_pose,
             method=self.s.method,
-            ransac_threshold_px=self.s.ransac_px,
-            seed=self.s.seed,
+            refine=RefineOptions(reject_px=self.s.ransac_px),
         )
         res = self._gate(est, len(uv), "flow", check_jump=True)
         if res.ok and est.rmse_px > self.s.flow_max_rmse_px:
@@ -154,9 +153,7 @@ class Tracker:
             self.camera,
             reference_pose=ref,
             method=self.s.method,
-            ransac=True,
-            ransac_threshold_px=self.s.ransac_px,
-            seed=self.s.seed,
+            ransac=RansacOptions(threshold_px=self.s.ransac_px, seed=self.s.seed),
         )
         res = self._gate(est, len(uv), "detect", check_jump=False)
         res.keyframe = self.model.keyframes[kf].name
