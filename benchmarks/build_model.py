@@ -24,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
-from mirage_cli.features import DetectorSettings  # noqa: E402
+from mirage_cli.features import DETECTORS, DetectorSettings  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.synth import LANDMARK_BOUNDS, landmark_surface_distance  # noqa: E402
 
@@ -33,7 +33,7 @@ KF = ROOT / "sample_data" / "keyframes"
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--detector", default="sift", choices=("sift", "orb", "akaze"))
+    ap.add_argument("--detector", default="sift", choices=DETECTORS)
     ap.add_argument("--repeat", type=int, default=3, help="builds to time (best is reported)")
     args = ap.parse_args()
     cam = Camera.load(ROOT / "sample_data" / "camera_truth.yaml")

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.pose import Pose, look_at, rodrigues, rotvec  # noqa: E402
-from mirage_cli.solver import cramer_rao_covariance, solve_pose  # noqa: E402
+from mirage_cli.solver import RansacOptions, cramer_rao_covariance, solve_pose  # noqa: E402
 
 SOLVERS = ("mirage-s", "epnp", "sqpnp", "iterative", "ap3p")
 CAM = Camera.from_params(1280, 720, 1000.0)
@@ -109,7 +109,9 @@ def run_config(rng, n, sigma, planar, offset, outliers, trials, solvers, ransac=
             b_tr.append(bt / dist**2)
         for s in solvers:
             t0 = time.perf_counter()
-            est = solve_pose(X, u, CAM, ref, method=s, ransac=ransac, seed=1)
+            est = solve_pose(
+                X, u, CAM, ref, method=s, ransac=RansacOptions(seed=1) if ransac else None
+            )
             out[s]["us"].append((time.perf_counter() - t0) * 1e6)
             if est.success:
                 r, e = errors(est.pose, truth)
@@ -178,7 +180,7 @@ def outliers_vs_clean(rng, trials: int, n: int = 100, ratio: float = 0.3):
         X, truth, ref = make_scene(rng, n, False, 15.0)
         u, inl = observe(rng, X, truth, 1.0, ratio)
         dist = float(np.linalg.norm(truth.center))
-        a = solve_pose(X, u, CAM, ref, ransac=True, seed=1)
+        a = solve_pose(X, u, CAM, ref, ransac=RansacOptions(seed=1))
         b = solve_pose(X[inl], u[inl], CAM, ref)
         if not (a.success and b.success):
             fail += 1

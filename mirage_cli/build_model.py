@@ -29,7 +29,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .camera import Camera
 from .errors import InputError
-from .features import DetectorSettings, detect, make_detector, ratio_match
+from .features import DetectorSettings, detect, make_detector, make_matcher, ratio_match
 from .fileio import read_yaml, require_file
 from .frames import FrameSource, read_image, resolve_inputs
 from .model import Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
@@ -593,8 +593,9 @@ def build_model(
     pairs = keyframe_pairs(poses, settings.spacing_deg, settings.neighbours)
     f = max(camera.fx, camera.fy)
     matches = []
+    matcher = make_matcher(settings.detector)
     for k, (i, j) in enumerate(pairs):
-        qi, ti = ratio_match(descs[i], descs[j], settings.ratio)
+        qi, ti = ratio_match(descs[i], descs[j], settings.ratio, matcher)
         ok = epipolar_ok(norm[i][qi], norm[j][ti], poses[i], poses[j], settings.epipolar_px / f)
         if ok.any():
             matches.append((i, j, qi[ok], ti[ok]))

@@ -7,6 +7,7 @@ arrays (pixel coordinates in the *distorted* image), never cv2.KeyPoint lists.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import cv2
@@ -14,7 +15,61 @@ import numpy as np
 
 from .errors import InputError
 
-DETECTORS = ("sift", "orb", "akaze")
+
+@dataclass(frozen=True)
+class DetectorSpec:
+    """What the rest of mirage needs to know about a detector, so that nothing checks names.
+
+    `create(nfeatures, params)` builds the OpenCV object (`params` already merged over
+    `defaults`); `norm` is the OpenCV distance for matching; `dtype` and `width` describe
+    one descriptor row; `transform`, when set, maps OpenCV's descriptors to the stored ones.
+    """
+
+    create: Callable[[int, dict], object]
+    norm: int
+    dtype: type
+    width: int
+    defaults: dict = field(default_factory=dict)
+    transform: Callable[[np.ndarray], np.ndarray] | None = None
+
+
+def root_sift(desc: np.ndarray) -> np.ndarray:
+    """RootSIFT (Arandjelovic & Zisserman 2012): L1-normalise, then square root, so that
+    the L2 distance of the results compares histograms by the Hellinger kernel."""
+    d = np.asarray(desc, np.float32)
+    return np.sqrt(d / np.maximum(np.abs(d).sum(axis=1, keepdims=True), 1e-12))
+
+
+def _sift(n: int, params: dict):
+    return cv2.SIFT_create(nfeatures=n, **params)
+
+
+# OpenCV's SIFT contrastThreshold 0.04 finds too few features on small, low-contrast
+# landmarks in webcam images; 0.02 roughly doubles them at little cost in repeatability.
+_SIFT_DEFAULTS = {"contrastThreshold": 0.02}
+
+REGISTRY: dict[str, DetectorSpec] = {
+    "sift": DetectorSpec(_sift, cv2.NORM_L2, np.float32, 128, _SIFT_DEFAULTS),
+    "rootsift": DetectorSpec(_sift, cv2.NORM_L2, np.float32, 128, _SIFT_DEFAULTS, root_sift),
+    "orb": DetectorSpec(
+        lambda n, p: cv2.ORB_create(nfeatures=n, **p),
+        cv2.NORM_HAMMING,
+        np.uint8,
+        32,
+        {"scaleFactor": 1.2, "nlevels": 8},
+    ),
+    "akaze": DetectorSpec(  # no feature cap of its own: `detect` keeps the strongest
+        lambda n, p: cv2.xfeatures2d.AKAZE_create(**p), cv2.NORM_HAMMING, np.uint8, 61
+    ),
+}
+DETECTORS = tuple(REGISTRY)
+
+
+def detector_spec(name: str) -> DetectorSpec:
+    try:
+        return REGISTRY[str(name).lower()]
+    except KeyError:
+        raise InputError(f"unknown detector {name!r}; choose from {', '.join(DETECTORS)}") from None
 
 
 @dataclass
@@ -28,13 +83,16 @@ class DetectorSettings:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    @property
+    def spec(self) -> DetectorSpec:
+        return detector_spec(self.name)
+
     @classmethod
     def from_dict(cls, d: dict) -> DetectorSettings:
         s = cls(
             str(d.get("name", "sift")), int(d.get("nfeatures", 2000)), dict(d.get("params", {}))
         )
-        if s.name not in DETECTORS:
-            raise InputError(f"unknown detector {s.name!r}; choose from {', '.join(DETECTORS)}")
+        detector_spec(s.name)  # an unknown name is an error here, not at first use
         return s
 
 
@@ -51,25 +109,14 @@ class Detector:
 
 
 def make_detector(settings: DetectorSettings) -> Detector:
-    name, n, params = settings.name.lower(), int(settings.nfeatures), dict(settings.params)
+    spec, n = settings.spec, int(settings.nfeatures)
+    params = {**spec.defaults, **settings.params}
     if n < 1:
         raise InputError(f"nfeatures must be >= 1, got {n}")
     try:
-        if name == "sift":
-            # OpenCV's 0.04 finds too few features on small, low-contrast landmarks in
-            # webcam images; 0.02 roughly doubles them at little cost in repeatability.
-            params.setdefault("contrastThreshold", 0.02)
-            impl = cv2.SIFT_create(nfeatures=n, **params)
-        elif name == "orb":
-            params.setdefault("scaleFactor", 1.2)
-            params.setdefault("nlevels", 8)
-            impl = cv2.ORB_create(nfeatures=n, **params)
-        elif name == "akaze":
-            impl = cv2.xfeatures2d.AKAZE_create(**params)
-        else:
-            raise InputError(f"unknown detector {name!r}; choose from {', '.join(DETECTORS)}")
+        impl = spec.create(n, params)
     except (cv2.error, TypeError) as e:
-        raise InputError(f"cannot create {name} detector with {params}: {e}") from None
+        raise InputError(f"cannot create {settings.name} detector with {params}: {e}") from None
     return Detector(settings, impl)
 
 
@@ -80,7 +127,7 @@ def to_gray(img: np.ndarray) -> np.ndarray:
 
 
 def detect(gray: np.ndarray, detector: Detector) -> tuple[np.ndarray, np.ndarray]:
-    """Keypoints (N,2) float32 px and descriptors (N,D): float32 (SIFT) or uint8 (ORB, AKAZE).
+    """Keypoints (N,2) float32 px and descriptors (N, spec.width) of the spec's dtype.
 
     Keeps the `nfeatures` strongest responses (AKAZE has no such option itself).
     """
@@ -90,40 +137,35 @@ def detect(gray: np.ndarray, detector: Detector) -> tuple[np.ndarray, np.ndarray
         kps, desc = detector.impl.detectAndCompute(gray, None)
     except cv2.error as e:
         raise InputError(f"feature detection failed: {str(e).strip().splitlines()[-1]}") from None
-    binary = settings.name != "sift"
+    spec = settings.spec
     if desc is None or not kps:
-        d = 32 if settings.name == "orb" else 61 if settings.name == "akaze" else 128
-        return np.zeros((0, 2), np.float32), np.zeros((0, d), np.uint8 if binary else np.float32)
+        return np.zeros((0, 2), np.float32), np.zeros((0, spec.width), spec.dtype)
     pts = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float32)
     if len(kps) > settings.nfeatures:
         resp = np.array([k.response for k in kps])
         keep = np.sort(np.argsort(-resp, kind="stable")[: settings.nfeatures])
         pts, desc = pts[keep], desc[keep]
-    desc = np.ascontiguousarray(desc, dtype=np.uint8 if binary else np.float32)
-    return pts, desc
+    if spec.transform is not None:
+        desc = spec.transform(desc)
+    return pts, np.ascontiguousarray(desc, dtype=spec.dtype)
 
 
-def norm_type(settings: DetectorSettings) -> int:
-    return cv2.NORM_L2 if settings.name == "sift" else cv2.NORM_HAMMING
+def make_matcher(settings: DetectorSettings):
+    """Brute-force matcher with this detector's norm."""
+    return cv2.BFMatcher(settings.spec.norm)
 
 
-def make_matcher(desc: np.ndarray):
-    """Brute-force matcher with the right norm for this kind of descriptor."""
-    return cv2.BFMatcher(cv2.NORM_HAMMING if desc.dtype == np.uint8 else cv2.NORM_L2)
-
-
-def knn2(desc_query: np.ndarray, desc_train: np.ndarray | None, matcher=None) -> np.ndarray:
+def knn2(desc_query: np.ndarray, desc_train: np.ndarray | None, matcher) -> np.ndarray:
     """(N,4) array of (train index 1, distance 1, train index 2, distance 2) per query row.
 
-    Index -1 / distance inf where there is no such neighbour. `desc_train` may be None
-    when `matcher` already holds trained descriptors (a prebuilt index).
+    Index -1 / distance inf where there is no such neighbour. `matcher` comes from
+    `make_matcher`; `desc_train` may be None when it already holds trained descriptors.
     """
     n = len(desc_query)
     out = np.full((n, 4), np.inf)
     out[:, 0] = out[:, 2] = -1
     if n == 0 or (desc_train is not None and len(desc_train) == 0):
         return out
-    matcher = matcher if matcher is not None else make_matcher(desc_query)
     try:
         if hasattr(matcher, "getTrainDescriptors") and len(matcher.getTrainDescriptors()):
             knn = matcher.knnMatch(desc_query, k=2)
@@ -143,8 +185,8 @@ def knn2(desc_query: np.ndarray, desc_train: np.ndarray | None, matcher=None) ->
 def ratio_match(
     desc_query: np.ndarray,
     desc_train: np.ndarray,
-    ratio: float = 0.8,
-    matcher=None,
+    ratio: float,
+    matcher,
     mutual: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Lowe-ratio matches (qi, ti) as int arrays; each train feature used at most once.

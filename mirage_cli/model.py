@@ -19,7 +19,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InputError
-from .features import DetectorSettings, knn2
+from .features import DetectorSettings, knn2, make_matcher
 from .fileio import atomic_path, require_file
 from .pose import Pose
 
@@ -35,7 +35,7 @@ class Keyframe:
     name: str
     pose: Pose
     keypoints: np.ndarray  # (N,2) float32, pixels in the distorted image
-    descriptors: np.ndarray  # (N,D) float32 (SIFT) or uint8 (ORB/AKAZE)
+    descriptors: np.ndarray  # (N,D) of the detector spec's dtype (float32 SIFT, uint8 ORB)
     point_ids: np.ndarray  # (N,) int32 index into LandmarkModel.points, -1 = no 3D point
     thumbnail: np.ndarray  # small grey uint8 image (width THUMB_WIDTH)
 
@@ -125,8 +125,8 @@ class LandmarkModel:
             self._index = (None, np.zeros(0, np.int32), np.zeros(0, np.int32))
             return self._index
         alld = np.ascontiguousarray(np.concatenate(descs))
-        if alld.dtype == np.uint8:
-            matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        if self.detector.spec.norm == cv2.NORM_HAMMING:
+            matcher = make_matcher(self.detector)
         else:
             matcher = cv2.FlannBasedMatcher(
                 {"algorithm": 1, "trees": 4}, {"checks": 32}
@@ -148,8 +148,7 @@ class LandmarkModel:
         matcher, owner, pids = self._index if self._index is not None else self._build_index()
         if matcher is None:
             return []
-        binary = self.detector.name != "sift"
-        q = np.ascontiguousarray(descriptors, dtype=np.uint8 if binary else np.float32)
+        q = np.ascontiguousarray(descriptors, dtype=self.detector.spec.dtype)
         k = knn2(q, None, matcher)
         ok = k[:, 0] >= 0
         i1 = k[:, 0].astype(np.int64)
@@ -225,7 +224,8 @@ class LandmarkModel:
         desc = [kf.descriptors for kf in kfs]
         dim = desc[0].shape[1] if desc else 128
         all_desc = np.concatenate(desc) if desc else np.zeros((0, dim), np.float32)
-        # SIFT descriptors are integers 0..255 stored as float: keep them as bytes on disk
+        # SIFT descriptors are integers 0..255 held as float: bytes on disk, lossless (`load`
+        # casts back to the detector's dtype); RootSIFT's are not integers and stay float
         if all_desc.dtype != np.uint8 and np.array_equal(all_desc, np.round(all_desc)):
             if all_desc.size == 0 or (all_desc.min() >= 0 and all_desc.max() <= 255):
                 all_desc = all_desc.astype(np.uint8)
@@ -302,9 +302,7 @@ class LandmarkModel:
             model=c.get("model", "pinhole"),
         )
         detector = DetectorSettings.from_dict(manifest["detector"])
-        desc = a["descriptors"]
-        if detector.name == "sift":
-            desc = desc.astype(np.float32)
+        desc = a["descriptors"].astype(detector.spec.dtype, copy=False)
         off, th_off = a["offsets"], np.concatenate([[0], np.cumsum(np.prod(a["thumb_shapes"], 1))])
         kfs = []
         for i, info in enumerate(manifest["keyframes"]):

@@ -41,6 +41,47 @@ _CV_FLAGS = {
     "ap3p": cv2.SOLVEPNP_AP3P,
 }
 _MIN_ROBUST = 6  # below this many points (<= 4 redundant equations) robust weights only cost
+_MINIMAL_SOLVERS = {"ap3p": cv2.SOLVEPNP_AP3P, "p3p": cv2.SOLVEPNP_P3P, "epnp": cv2.SOLVEPNP_EPNP}
+
+
+@dataclass(frozen=True)
+class RansacOptions:
+    """Seeded minimal-solver RANSAC before the fit, for real matches that hold outliers.
+
+    threshold_px: inlier reprojection error; the fit also re-classifies every point by it at
+    the refined pose. seed makes the sampling repeatable. minimal_solver: ap3p | p3p | epnp.
+    """
+
+    threshold_px: float = 4.0
+    iterations: int = 500
+    confidence: float = 0.999
+    seed: int = 0
+    minimal_solver: str = "ap3p"
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """The Mirage-S iterations, the covariance's noise and the final gate.
+
+    robust: "huber" (IRLS with Huber weights, floor `huber_px`, plus rejection of gross
+    outliers beyond max(reject_px, 5 robust sigmas)) or "none". reject_px None: the RANSAC
+    threshold (RansacOptions' default without RANSAC). reference_sigma_deg: how far (1 sigma,
+    rotation) the reference may be from the truth; it weighs the two minima of a planar
+    target (see `_resolve_ambiguity`). pixel_sigma: known pixel noise for the covariance;
+    None estimates it from the residuals (sum w r^2 / (2n - 6)), falling back to
+    `default_pixel_sigma` when n = 3 (no redundancy). max_rmse_px: optional gate; a solution
+    whose inlier reprojection RMSE (px) exceeds it is a failure instead of a doubtful pose.
+    """
+
+    max_iterations: int = 100
+    robust: str = "huber"
+    huber_px: float = 3.0
+    reject_px: float | None = None
+    tol: float = 1e-6
+    reference_sigma_deg: float = 10.0
+    pixel_sigma: float | None = None
+    default_pixel_sigma: float = 1.0
+    max_rmse_px: float | None = None
 
 
 @dataclass
@@ -131,15 +172,7 @@ _REFINE_FAILURES = {
 }
 
 
-def _refine(
-    prob: _Problem,
-    pose: Pose,
-    max_iterations: int,
-    robust: str,
-    huber_px: float,
-    reject_px: float,
-    tol: float,
-):
+def _refine(prob: _Problem, pose: Pose, opts: RefineOptions, reject_px: float):
     """Gauss-Newton / IRLS on the left perturbation (compiled, see `refine`).  Returns a dict
     or a failure reason."""
     status, R, t, r2, wt, H, iterations = _k.refine(
@@ -149,14 +182,14 @@ def _refine(
         prob.fy,
         np.ascontiguousarray(pose.R, dtype=np.float64),
         np.ascontiguousarray(pose.t, dtype=np.float64),
-        int(max_iterations),
-        robust == "huber" and prob.n >= _MIN_ROBUST,
-        float(huber_px),
+        int(opts.max_iterations),
+        opts.robust == "huber" and prob.n >= _MIN_ROBUST,
+        float(opts.huber_px),
         float(reject_px),
-        float(tol),
+        float(opts.tol),
     )
     if status == _k.NOT_CONVERGED:
-        return f"did not converge in {max_iterations} iterations"
+        return f"did not converge in {opts.max_iterations} iterations"
     if status != _k.OK:
         return _REFINE_FAILURES[status]
     return {"R": R, "t": t, "r2": r2, "wt": wt, "H": H, "iterations": int(iterations)}
@@ -279,19 +312,20 @@ def _cv_solve(method: str, X, u, camera: Camera, reference_pose: Pose | None):
     return Pose.from_rvec_tvec(rv.ravel(), tv.ravel())
 
 
-def _ransac(X, u, camera: Camera, threshold_px: float, seed: int, iterations: int, confidence):
-    """Minimal-solver RANSAC (OpenCV AP3P), seeded; returns (pose, inlier mask) or a reason."""
+def _ransac(X, u, camera: Camera, opts: RansacOptions):
+    """Minimal-solver RANSAC (OpenCV, AP3P by default), seeded; returns (pose, inlier mask)
+    or a reason."""
     try:
-        cv2.setRNGSeed(int(seed))
+        cv2.setRNGSeed(int(opts.seed))
         ok, rv, tv, idx = cv2.solvePnPRansac(
             X,
             u,
             camera.K,
             camera.dist,
-            iterationsCount=int(iterations),
-            reprojectionError=float(threshold_px),
-            confidence=float(confidence),
-            flags=cv2.SOLVEPNP_AP3P,
+            iterationsCount=int(opts.iterations),
+            reprojectionError=float(opts.threshold_px),
+            confidence=float(opts.confidence),
+            flags=_MINIMAL_SOLVERS[opts.minimal_solver],
         )
     except cv2.error as e:
         msg = str(e).strip().splitlines()[-1] if str(e).strip() else "OpenCV error"
@@ -329,19 +363,8 @@ def solve_pose(
     camera: Camera,
     reference_pose: Pose | None = None,
     method: str = "mirage-s",
-    ransac: bool = False,
-    ransac_threshold_px: float = 4.0,
-    seed: int = 0,
-    robust: str = "huber",
-    max_iterations: int = 100,
-    huber_px: float = 3.0,
-    pixel_sigma: float | None = None,
-    default_pixel_sigma: float = 1.0,
-    ransac_iterations: int = 500,
-    ransac_confidence: float = 0.999,
-    tol: float = 1e-6,
-    max_rmse_px: float | None = None,
-    reference_sigma_deg: float = 10.0,
+    ransac: RansacOptions | None = None,
+    refine: RefineOptions = RefineOptions(),  # noqa: B008 - frozen: one shared default
 ) -> PoseEstimate:
     """Pose T_CW of a camera from n >= 3 world points and their pixels.
 
@@ -349,26 +372,19 @@ def solve_pose(
     guarded SQPnP/EPnP/AP3P start); "epnp", "sqpnp", "iterative", "ap3p" run OpenCV's
     solver (with `reference_pose` as the guess where it takes one) and report the same
     statistics, so methods can be compared in one pipeline.
-    ransac: seeded AP3P RANSAC first (threshold `ransac_threshold_px`); the fit then runs on
-    its inliers and inliers are re-classified by final reprojection error.
-    robust: "huber" (IRLS with Huber weights, floor `huber_px`, plus rejection of gross
-    outliers beyond max(ransac_threshold_px, 5 robust sigmas)) or "none".
-    pixel_sigma: known pixel noise for the covariance; None estimates it from the residuals
-    (sum w r^2 / (2n - 6)), falling back to `default_pixel_sigma` when n = 3 (no redundancy).
-    max_rmse_px: optional gate; a solution whose inlier reprojection RMSE (per-point 2D
-    error, px) exceeds it is reported as a failure instead of a doubtful pose.
-    reference_sigma_deg: how far (1 sigma, rotation) the reference may be from the truth;
-    it weighs the two minima of a planar target (see `_resolve_ambiguity`).
+    ransac: seeded RANSAC first (`RansacOptions`); the fit then runs on its inliers and
+    inliers are re-classified by final reprojection error. None: every point is fitted.
+    refine: the iterations, robust loss, covariance noise and RMSE gate (`RefineOptions`).
     Never raises for bad numeric input: failures come back with success=False and a reason.
     """
-    args = {k: v for k, v in locals().items() if k != "max_rmse_px"}
     try:
-        est = _solve(**args)
+        est = _solve(points_3d, points_2d, camera, reference_pose, method, ransac, refine)
     except (np.linalg.LinAlgError, cv2.error, FloatingPointError) as e:  # belt and braces
         return _fail(f"numerical failure: {type(e).__name__}", _count(points_3d), str(method))
-    if est.success and max_rmse_px is not None and not est.rmse_px <= max_rmse_px:
+    gate = refine.max_rmse_px
+    if est.success and gate is not None and not est.rmse_px <= gate:
         return _fail(
-            f"reprojection RMSE {est.rmse_px:.2f} px above max_rmse_px {max_rmse_px:g}",
+            f"reprojection RMSE {est.rmse_px:.2f} px above max_rmse_px {gate:g}",
             len(est.inliers),
             est.method,
             est.iterations,
@@ -389,27 +405,24 @@ def _solve(
     camera: Camera,
     reference_pose: Pose | None,
     method: str,
-    ransac: bool,
-    ransac_threshold_px: float,
-    seed: int,
-    robust: str,
-    max_iterations: int,
-    huber_px: float,
-    pixel_sigma: float | None,
-    default_pixel_sigma: float,
-    ransac_iterations: int,
-    ransac_confidence: float,
-    tol: float,
-    reference_sigma_deg: float,
+    ransac: RansacOptions | None,
+    opts: RefineOptions,
 ) -> PoseEstimate:
-    """The body of `solve_pose` (see there for the arguments and their defaults)."""
+    """The body of `solve_pose` (see there for the arguments)."""
     method = str(method).lower()
     if method not in METHODS:
         return _fail(f"unknown method '{method}' (choose from {', '.join(METHODS)})", 0, method)
-    if robust not in ("huber", "none"):
-        return _fail(f"unknown robust loss '{robust}' (huber or none)", 0, method)
-    if not reference_sigma_deg > 0.0:
-        return _fail(f"reference_sigma_deg must be > 0, got {reference_sigma_deg}", 0, method)
+    if opts.robust not in ("huber", "none"):
+        return _fail(f"unknown robust loss '{opts.robust}' (huber or none)", 0, method)
+    if not opts.reference_sigma_deg > 0.0:
+        return _fail(f"reference_sigma_deg must be > 0, got {opts.reference_sigma_deg}", 0, method)
+    if ransac is not None and ransac.minimal_solver not in _MINIMAL_SOLVERS:
+        return _fail(
+            f"unknown minimal solver '{ransac.minimal_solver}' "
+            f"(choose from {', '.join(_MINIMAL_SOLVERS)})",
+            0,
+            method,
+        )
     v = _validate(points_3d, points_2d)
     if isinstance(v, str):
         return _fail(v, _count(points_3d), method)
@@ -425,13 +438,15 @@ def _solve(
     if xy is None or not np.isfinite(xy).all():
         return _fail("image points could not be undistorted", n, method)
     prob = _Problem(X, xy, camera.fx, camera.fy)
-    reject_px = ransac_threshold_px
+    thr = (ransac or RansacOptions()).threshold_px
+    reject_px = opts.reject_px if opts.reject_px is not None else thr
+    pixel_sigma, default_pixel_sigma = opts.pixel_sigma, opts.default_pixel_sigma
 
     # --- outlier removal before the fit --------------------------------------------------
     mask = np.ones(n, dtype=bool)
     ransac_pose = None
-    if ransac and n > 4:
-        rr = _ransac(X, u, camera, ransac_threshold_px, seed, ransac_iterations, ransac_confidence)
+    if ransac is not None and n > 4:
+        rr = _ransac(X, u, camera, ransac)
         if isinstance(rr, str):
             return _fail(rr, n, method)
         ransac_pose, mask = rr
@@ -446,7 +461,7 @@ def _solve(
         if isinstance(p0, str):
             return _fail(p0, n, method)
         return _score_fixed(
-            prob, p0, mask, method, ransac_threshold_px, pixel_sigma, default_pixel_sigma, ransac
+            prob, p0, mask, method, thr, pixel_sigma, default_pixel_sigma, ransac is not None
         )
 
     starts = []
@@ -469,17 +484,17 @@ def _solve(
     reason = "no start pose"
     best = None
     for start in starts:
-        res = _refine(sub(mask), start, max_iterations, robust, huber_px, reject_px, tol)
+        res = _refine(sub(mask), start, opts, reject_px)
         if isinstance(res, str):
             reason = res
             continue
-        if ransac:
+        if ransac is not None:
             # re-classify every point by its reprojection at the refined pose; refit if changed
             r2all = prob.point_r2(res["R"], res["t"])
-            m2 = r2all <= ransac_threshold_px**2
+            m2 = r2all <= thr**2
             if m2.sum() >= 3 and not np.array_equal(m2, mask):
                 p1 = Pose(res["R"], res["t"])
-                res2 = _refine(sub(m2), p1, max_iterations, robust, huber_px, reject_px, tol)
+                res2 = _refine(sub(m2), p1, opts, reject_px)
                 if not isinstance(res2, str):
                     res2["iterations"] += res["iterations"]
                     res, mask = res2, m2
@@ -494,7 +509,6 @@ def _solve(
     if reference_pose is not None and (planar or (n <= _FEW_POINTS and mask.sum() >= 4)):
         # the planar flip or a P3P-like second root: weigh the other minima too (even when
         # the reference start failed)
-        refine_opts = (max_iterations, robust, huber_px, reject_px, tol)
         best = _resolve_ambiguity(
             best,
             X,
@@ -503,10 +517,8 @@ def _solve(
             mask,
             camera,
             reference_pose,
-            reference_sigma_deg,
-            refine_opts,
-            pixel_sigma,
-            default_pixel_sigma,
+            opts,
+            reject_px,
             planar,
         )
     if best is None:
@@ -554,10 +566,8 @@ def _resolve_ambiguity(
     mask,
     camera,
     reference,
-    reference_sigma_deg,
-    refine_opts,
-    pixel_sigma,
-    default_sigma,
+    opts: RefineOptions,
+    reject_px,
     planar,
 ) -> PoseEstimate | None:
     """A planar target has two minima (the flip), and near fronto-parallel both explain the
@@ -570,7 +580,7 @@ def _resolve_ambiguity(
     sqrt(det C) of the minimum): likelihood exp(-cost / 2 sigma^2), with cost the
     plain squared pixel error over the same points (all of `mask`, also those a minimum's
     robust loss rejected, so a minimum cannot look cheap by rejecting points), times a
-    Gaussian prior of width `reference_sigma_deg` on the rotation from the reference.
+    Gaussian prior of width `opts.reference_sigma_deg` on the rotation from the reference.
     For the planar flip, return the minimum-mean-square-error pose, the most probable
     minimum moved toward the other by the other's probability p, with the mixture's
     covariance (1-p) C_a + p C_b + p (1-p) d d^T; with few points in space (where blending
@@ -580,12 +590,13 @@ def _resolve_ambiguity(
     m = mask
     if m.sum() < 4:
         return best
+    pixel_sigma, default_sigma = opts.pixel_sigma, opts.default_pixel_sigma
     prob = _Problem(X[m], xy[m], camera.fx, camera.fy)
     cands = [best] if best is not None else []
     for start in _global_starts(X[m], u[m], camera, planar):
         if any(start.angle_to(c.pose) < _SAME_MINIMUM_DEG for c in cands):
             continue
-        res = _refine(prob, start, *refine_opts)
+        res = _refine(prob, start, opts, reject_px)
         if isinstance(res, str):
             continue
         est = _from_refine(None, prob, res, m, len(X), pixel_sigma, default_sigma)
@@ -603,7 +614,7 @@ def _resolve_ambiguity(
     # Laplace approximation of each minimum's posterior mass: peak height times the volume
     # of its basin, sqrt(det C) (a flatter minimum holds more probability)
     log_det = np.array([np.linalg.slogdet(c.covariance)[1] for c in cands])
-    log_p = -cost / (2.0 * s2) - theta**2 / (2.0 * reference_sigma_deg**2) + 0.5 * log_det
+    log_p = -cost / (2.0 * s2) - theta**2 / (2.0 * opts.reference_sigma_deg**2) + 0.5 * log_det
     order = np.argsort(-log_p)
     a, b = cands[order[0]], cands[order[1]]
     p = 1.0 / (1.0 + math.exp(min(log_p[order[0]] - log_p[order[1]], 700.0)))

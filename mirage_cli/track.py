@@ -18,11 +18,11 @@ import cv2
 import numpy as np
 
 from .camera import Camera
-from .features import detect, make_detector, norm_type, ratio_match
+from .features import detect, make_detector, make_matcher, ratio_match
 from .frames import Frame
 from .model import LandmarkModel
 from .pose import Pose
-from .solver import PoseEstimate, solve_pose
+from .solver import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from .trajectory import FrameRecord, Status
 
 
@@ -59,7 +59,7 @@ class Tracker:
         self.keyframe = -1
         self.track_px: np.ndarray | None = None  # (N,2) float32 inliers in prev frame
         self.track_X: np.ndarray | None = None  # (N,3) their model points
-        self.matcher = cv2.BFMatcher(norm_type(model.detector))
+        self.matcher = make_matcher(model.detector)
         self._kf_cache: dict[int, tuple] = {}
 
     # ------------------------------------------------------------------------------------
@@ -114,8 +114,7 @@ class Tracker:
             self.camera,
             reference_pose=self.prev_pose,
             method=self.s.method,
-            ransac_threshold_px=self.s.ransac_px,
-            seed=self.s.seed,
+            refine=RefineOptions(reject_px=self.s.ransac_px),
         )
         res = self._gate(est, len(uv), "flow", check_jump=True)
         if res.ok and est.rmse_px > self.s.flow_max_rmse_px:
@@ -154,9 +153,7 @@ class Tracker:
             self.camera,
             reference_pose=ref,
             method=self.s.method,
-            ransac=True,
-            ransac_threshold_px=self.s.ransac_px,
-            seed=self.s.seed,
+            ransac=RansacOptions(threshold_px=self.s.ransac_px, seed=self.s.seed),
         )
         res = self._gate(est, len(uv), "detect", check_jump=False)
         res.keyframe = self.model.keyframes[kf].name

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mirage_cli import PoseEstimate, solve_pose
+from mirage_cli import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from mirage_cli.camera import Camera
 from mirage_cli.pose import Pose, look_at, rodrigues, rotvec
 from mirage_cli.solver import cramer_rao_covariance
@@ -234,7 +234,7 @@ def test_outliers_with_ransac_match_clean_inliers():
         u[out] = rng.uniform([0, 0], [CAM.width, CAM.height], (30, 2))
         inl = np.ones(100, bool)
         inl[out] = False
-        est = solve_pose(X, u, CAM, ref, ransac=True, seed=7)
+        est = solve_pose(X, u, CAM, ref, ransac=RansacOptions(seed=7))
         clean = solve_pose(X[inl], u[inl], CAM, ref)
         assert est.success and clean.success
         assert np.sum(est.inliers & ~inl) <= 1 and np.sum(est.inliers & inl) >= 68
@@ -249,8 +249,8 @@ def test_ransac_is_reproducible():
     X, truth, ref = scene(rng, 60)
     u = CAM.project(X, truth) + rng.normal(size=(60, 2))
     u[:20] = rng.uniform([0, 0], [CAM.width, CAM.height], (20, 2))
-    a = solve_pose(X, u, CAM, ref, ransac=True, seed=3)
-    b = solve_pose(X, u, CAM, ref, ransac=True, seed=3)
+    a = solve_pose(X, u, CAM, ref, ransac=RansacOptions(seed=3))
+    b = solve_pose(X, u, CAM, ref, ransac=RansacOptions(seed=3))
     assert a.success and np.array_equal(a.inliers, b.inliers)
     assert np.allclose(a.pose.matrix, b.pose.matrix)
 
@@ -282,7 +282,9 @@ def test_covariance_is_honest():
 def test_covariance_three_points_uses_prior_sigma():
     rng = np.random.default_rng(42)
     X, truth, ref = scene(rng, 3, False, 5.0)
-    est = solve_pose(X, CAM.project(X, truth), CAM, ref, default_pixel_sigma=2.0)
+    est = solve_pose(
+        X, CAM.project(X, truth), CAM, ref, refine=RefineOptions(default_pixel_sigma=2.0)
+    )
     assert est.success and est.sigma_px == 2.0 and est.sigma_pos_m > 0
 
 
@@ -363,7 +365,10 @@ def test_degenerate_inputs(method):
     _assert_fails(solve_pose(same, u[:6], CAM, ref, method=method), "collinear")
     _assert_fails(solve_pose(X, u[:5], CAM, ref, method=method), "counts differ")
     _assert_fails(solve_pose(X, u, CAM, ref, method="nope"), "unknown method")
-    _assert_fails(solve_pose(X, u, CAM, ref, reference_sigma_deg=0.0), "reference_sigma_deg")
+    _assert_fails(
+        solve_pose(X, u, CAM, ref, refine=RefineOptions(reference_sigma_deg=0.0)),
+        "reference_sigma_deg",
+    )
     _assert_fails(solve_pose("abc", u, CAM, ref, method=method), "numeric")
 
 
@@ -379,7 +384,7 @@ def test_points_behind_camera():
     est = solve_pose(X, u, CAM, ref)
     if est.success:  # no pose explains these pixels: any pose found must say so loudly
         assert np.all(est.pose.transform(X)[:, 2] > 0) and est.rmse_px > 5.0
-    _assert_fails(solve_pose(X, u, CAM, ref, max_rmse_px=3.0), "RMSE")
+    _assert_fails(solve_pose(X, u, CAM, ref, refine=RefineOptions(max_rmse_px=3.0)), "RMSE")
 
 
 def test_garbage_does_not_give_a_pose_silently():
