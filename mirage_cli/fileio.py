@@ -10,6 +10,7 @@ from pathlib import Path
 
 import yaml
 
+from . import signals
 from .errors import EnvironmentFailure, InputError, OutputError
 
 
@@ -74,11 +75,12 @@ def write_failure(path, e: OSError) -> EnvironmentFailure:
 
 def mkstemp_near(p: Path, suffix: str) -> tuple[int, Path]:
     """A registered temporary file in the output's folder (so the rename is atomic)."""
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix, dir=p.parent or ".")
-    except OSError as e:
-        raise write_failure(p, e) from None
-    register_temp(tmp)
+    with signals.deferred():  # a signal between creating and registering would leak it
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix, dir=p.parent or ".")
+        except OSError as e:
+            raise write_failure(p, e) from None
+        register_temp(tmp)
     return fd, Path(tmp)
 
 

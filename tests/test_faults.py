@@ -699,3 +699,25 @@ def test_signal_during_start_up(sig, code, world):
     assert_contract(p.returncode, err, code, prefix=f"mirage: interrupted ({name})")
     assert (tmp / "out.csv").read_text() == PROTECTED["out.csv"]
     assert not _hidden(tmp)
+
+
+def test_sigterm_while_writing_the_model_leaves_no_temp_file(world):
+    """SIGTERM while build-model writes its (multi-MB) model: the temporary file goes, the
+    previous model stays as it was, exit 143."""
+    tmp = world["TMP"]
+    args = [*_fill(BUILD, world), "--poses", world["KP"], "--spacing-deg", "40"]
+    p = _popen(args, tmp, stdout=subprocess.DEVNULL)
+    t0, seen = time.monotonic(), False
+    while p.poll() is None and time.monotonic() - t0 < 300:
+        if list(tmp.glob(".out.mirage.*")):  # the model is being written
+            seen = True
+            p.send_signal(signal.SIGTERM)
+            break
+        time.sleep(0.002)
+    _, err = p.communicate(timeout=120)
+    if not seen:  # too fast to catch: at least it finished cleanly
+        assert p.returncode == 0, err
+    else:
+        assert_contract(p.returncode, err, 143, prefix="mirage: interrupted (SIGTERM)")
+        assert (tmp / "out.mirage").read_text() == PROTECTED["out.mirage"]
+    assert not _hidden(tmp), _hidden(tmp)
