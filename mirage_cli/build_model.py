@@ -61,6 +61,8 @@ class ROI:
             v = tuple(float(x) for x in t.replace("cyl:", "").replace("box:", "").split(","))
         except ValueError:
             v = ()
+        if not all(np.isfinite(v)):
+            v = ()
         if len(v) == 3 and v[0] > 0 and v[1] < v[2]:
             return cls("cylinder", v)
         if len(v) == 6 and v[0] < v[1] and v[2] < v[3] and v[4] < v[5]:

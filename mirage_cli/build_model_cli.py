@@ -20,8 +20,9 @@ from .camera import Camera
 from .config import default_of
 from .errors import InputError
 from .features import DETECTORS, DetectorSettings
-from .fileio import atomic_path, check_writable
+from .fileio import atomic_path, check_writable, refuse_overwrite
 from .model import LandmarkModel
+from .validate import BoundedInt, FiniteFloat
 
 
 def summary_lines(model: LandmarkModel) -> list[str]:
@@ -88,7 +89,7 @@ class _Stages:
 )
 @click.option(
     "--spacing-deg",
-    type=click.FloatRange(1, 90),
+    type=FiniteFloat(1, 90),
     default=BuildSettings.spacing_deg,
     show_default=True,
     help="One keyframe per this much azimuth (per elevation band).",
@@ -98,7 +99,7 @@ class _Stages:
 )
 @click.option(
     "--nfeatures",
-    type=click.IntRange(min=50),
+    type=BoundedInt(min=50),
     default=DetectorSettings.nfeatures,
     show_default=True,
 )
@@ -111,14 +112,14 @@ class _Stages:
 )
 @click.option(
     "--max-reproj-px",
-    type=click.FloatRange(min=0.1),
+    type=FiniteFloat(min=0.1),
     default=BuildSettings.max_reproj_px,
     show_default=True,
     help="Keep points that reproject within this in every view.",
 )
 @click.option(
     "--min-angle-deg",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0, max=90),
     default=BuildSettings.min_angle_deg,
     show_default=True,
     help="Minimum triangulation angle.",
@@ -148,6 +149,10 @@ def build_model_cmd(
     """
     if (poses_path is None) == (board_path is None):
         raise InputError("give exactly one of --poses FILE or --board FILE")
+    refuse_overwrite(
+        {"-o": output},
+        {"INPUT": inputs, "--camera": camera_path, "--poses": poses_path, "--board": board_path},
+    )
     check_writable(output)
     t0 = time.perf_counter()
     camera = Camera.load(camera_path)
@@ -214,6 +219,7 @@ def save_model(res, output, source: dict, t0: float) -> None:
 )
 def inspect_cmd(model_path, plot):
     """Print a landmark model's summary; optionally plot it from above."""
+    refuse_overwrite({"--plot": plot}, {"MODEL": model_path})
     t0 = time.perf_counter()
     model = LandmarkModel.load(model_path)
     dt = time.perf_counter() - t0

@@ -12,8 +12,9 @@ from .calibrate import Board, CalibOptions, Calibration, Detections, detect_imag
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
 from .config import default_of
-from .fileio import atomic_path, check_writable
+from .fileio import atomic_path, check_writable, refuse_overwrite
 from .frames import FrameSource, resolve_inputs
+from .validate import BoundedInt, FiniteFloat
 
 _K_NAMES = ("fx", "fy", "cx", "cy")
 
@@ -46,7 +47,7 @@ def _positive(ctx, param, value):
 )
 @click.option(
     "--square",
-    type=float,
+    type=FiniteFloat(),
     required=True,
     callback=_positive,
     help="Square side in metres (e.g. 0.025).",
@@ -67,7 +68,7 @@ def _positive(ctx, param, value):
 )
 @click.option(
     "--marker",
-    type=float,
+    type=FiniteFloat(),
     default=None,
     callback=_positive,
     help="ChArUco marker side in metres [default: 0.75 x square].",
@@ -82,14 +83,14 @@ def _positive(ctx, param, value):
 )
 @click.option(
     "--every",
-    type=click.IntRange(min=1),
+    type=BoundedInt(min=1),
     default=default_of(detect_video, "every"),
     show_default=True,
     help="Video: look at every K-th frame.",
 )
 @click.option(
     "--min-motion",
-    type=float,
+    type=FiniteFloat(min=0),
     default=default_of(detect_video, "min_motion_px"),
     show_default=True,
     help="Video: skip views whose corners moved less than this (px).",
@@ -106,14 +107,14 @@ def _positive(ctx, param, value):
 @click.option("--zero-tangent", is_flag=True, help="Fix p1 = p2 = 0.")
 @click.option(
     "--max-view-error",
-    type=float,
+    type=FiniteFloat(),
     default=None,
     callback=_positive,
     help="Reject views with RMS above this (px) [default: > max(3x median, median + 0.5 px)].",
 )
 @click.option(
     "--reject-factor",
-    type=float,
+    type=FiniteFloat(),
     default=CalibOptions.reject_factor,
     show_default=True,
     callback=_positive,
@@ -127,14 +128,14 @@ def _positive(ctx, param, value):
 )
 @click.option(
     "--subpix-window",
-    type=click.IntRange(min=1),
+    type=BoundedInt(min=1),
     default=None,
     help="Fixed cornerSubPix half-window in px [default: 1/4 of the corner spacing, "
     "max 8]; 11 reproduces OpenCV's calibration sample.",
 )
 @click.option(
     "--workers",
-    type=click.IntRange(min=1),
+    type=BoundedInt(min=1),
     default=None,
     help="Detection threads [default: CPUs, max 4].",
 )
@@ -165,6 +166,7 @@ def calibrate(
     Example:
       mirage calibrate calib/*.jpg --board 9x6 --square 0.025 -o camera.yaml
     """
+    refuse_overwrite({"-o": output, "--report": report}, {"INPUT": inputs})
     check_writable(output)  # fail now, not after minutes of detection
     if report:
         check_writable(report)

@@ -183,7 +183,7 @@ class Camera:
     # --- files --------------------------------------------------------------------------
     def save(self, path) -> None:
         """Write the camera YAML atomically (cv2.FileStorage format)."""
-        with atomic_path(path, suffix=".yaml") as tmp:
+        with atomic_path(path, suffix=".yaml", verify=self._reads_back) as tmp:
             fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
             fs.write("image_width", self.width)
             fs.write("image_height", self.height)
@@ -195,6 +195,16 @@ class Camera:
                 fs.write("rms_px", float(self.rms_px))
             for key, value in self.meta.items():
                 _fs_write(fs, key, value)
+            fs.release()
+
+    def _reads_back(self, path) -> bool:
+        """FileStorage reports no write error (a full disk leaves 0 bytes or a cut file):
+        the file counts as written only when its camera matrix reads back."""
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        try:
+            K = fs.getNode("camera_matrix").mat()
+            return K is not None and np.array_equal(K, self.K)
+        finally:
             fs.release()
 
     @classmethod

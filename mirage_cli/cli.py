@@ -6,16 +6,22 @@ unexpected is one line and exit 1; `--debug` shows the traceback.
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
 import sys
 import traceback
 
 import click
 
-from . import __version__, ui
+from . import __version__, fileio, signals, ui
 from .config import check_config, read_config
-from .errors import MirageError
+from .errors import EnvironmentFailure, MirageError
 
 _debug = {"on": False}
+# an OS error the user can fix (a path or a permission), as opposed to a failing machine
+_USER_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EISDIR,
+                errno.ELOOP, errno.ENAMETOOLONG}  # fmt: skip
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
@@ -68,44 +74,127 @@ _register()
 
 
 def main(argv: list[str] | None = None) -> None:
-    argv = sys.argv[1:] if argv is None else list(argv)
-    if "--debug" in argv:
-        _debug["on"] = True
+    """Run one command and exit with its code: 0 done, 2 a user error, 1 the machine failed
+    (full disk, closed stdout) or a bug, 130/143 interrupted by SIGINT/SIGTERM.
+
+    Whatever happens, stderr gets at most one line, and no temporary file is left behind.
+    """
+    signals.install()  # first: from here on a signal is an exception that cleans up
     try:
-        cli.main(args=argv, prog_name="mirage", standalone_mode=False)
-    except MirageError as e:
+        argv = sys.argv[1:] if argv is None else list(argv)
+        if "--debug" in argv:
+            _debug["on"] = True
+        _check_std_streams(quiet="-q" in argv or "--quiet" in argv)
+        code = _invoke(argv)
+    except BaseException as e:  # noqa: BLE001 - every outcome becomes one line and a code
+        code = _report(e)
+    try:
+        with signals.deferred():
+            fileio.cleanup_temps()
+    except KeyboardInterrupt as e:
+        code = _report(e)
+    sys.exit(code)
+
+
+def _invoke(argv: list[str]) -> int:
+    """click's main() without its Ctrl-C handling (it prints a blank line and forgets
+    which signal it was) and without dropping exit codes (standalone_mode=False)."""
+    try:
+        with cli.make_context("mirage", argv) as ctx:
+            cli.invoke(ctx)
+    except click.exceptions.Exit as e:
+        return e.exit_code
+    return 0
+
+
+def _report(e: BaseException) -> int:
+    """Print the one line for an exception that ended the run; return the exit code."""
+    try:
+        with signals.deferred():
+            return _describe(e)
+    except KeyboardInterrupt as again:  # a second signal while reporting the first
+        return signals.exit_code(again)
+
+
+def _say(line: str) -> None:
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        click.echo(line, err=True)
+
+
+def _describe(e: BaseException) -> int:
+    if isinstance(e, SystemExit):
+        return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    if isinstance(e, KeyboardInterrupt | click.exceptions.Abort):
+        cause = e.__cause__ if isinstance(e, click.exceptions.Abort) else e
+        _say(signals.message(cause or e))
+        return signals.exit_code(cause or e)
+    if isinstance(e, MirageError):
         if _debug["on"]:
             traceback.print_exc()
-        click.echo(f"mirage: error: {e}", err=True)
-        sys.exit(2)
-    except click.exceptions.NoArgsIsHelpError as e:
-        click.echo(e.ctx.get_help() if e.ctx else str(e))
-        sys.exit(2)
-    except click.UsageError as e:
+        _say(f"mirage: error: {e}")
+        return e.exit_code
+    if isinstance(e, click.exceptions.NoArgsIsHelpError):
+        with contextlib.suppress(OSError):
+            click.echo(e.ctx.get_help() if e.ctx else str(e))
+        return 2
+    if isinstance(e, click.UsageError):
         hint = (
             f" (see 'mirage {e.ctx.info_name} --help')"
             if e.ctx and e.ctx.parent
             else " (see 'mirage --help')"
         )
-        click.echo(f"mirage: error: {e.format_message()}{hint}", err=True)
-        sys.exit(2)
-    except click.ClickException as e:
-        click.echo(f"mirage: error: {e.format_message()}", err=True)
-        sys.exit(e.exit_code or 2)
-    except (KeyboardInterrupt, click.exceptions.Abort):
-        click.echo("mirage: interrupted", err=True)
-        sys.exit(130)
-    except click.exceptions.Exit as e:
-        sys.exit(e.exit_code)
-    except BrokenPipeError:
-        sys.exit(1)
-    except Exception as e:  # noqa: BLE001 - the last line of defence
+        _say(f"mirage: error: {e.format_message()}{hint}")
+        return 2
+    if isinstance(e, click.ClickException):
+        _say(f"mirage: error: {e.format_message()}")
+        return e.exit_code or 2
+    if isinstance(e, OSError):  # the machine: I/O error, full disk, no permission
         if _debug["on"]:
             traceback.print_exc()
-        msg = str(e).strip().splitlines()[-1] if str(e).strip() else ""
-        click.echo(
-            f"mirage: error: unexpected {type(e).__name__}: {msg} "
-            f"(rerun with --debug for the traceback)",
-            err=True,
+        if e.filename:  # writes are named by their writers; this is mostly a read
+            _say(f"mirage: error: {e.filename}: {e.strerror or e}")
+            return 2 if e.errno in _USER_ERRNOS else 1
+        _stdout_gone()
+        if e.errno in (errno.EPIPE, errno.ENOSPC, errno.EIO, errno.EBADF):
+            _say(f"mirage: error: cannot write to standard output: {e.strerror or e}")
+        else:
+            _say(f"mirage: error: {e.strerror or e}")
+        return 1
+    if _debug["on"]:
+        traceback.print_exc()
+    msg = str(e).strip().splitlines()[-1] if str(e).strip() else ""
+    _say(
+        f"mirage: error: unexpected {type(e).__name__}: {msg} "
+        f"(rerun with --debug for the traceback)"
+    )
+    return 1
+
+
+def _check_std_streams(quiet: bool) -> None:
+    """A closed stdout/stderr (`mirage ... >&-`): keep fds 1 and 2 taken (else the next
+    file opened would become fd 1 and receive any library's console output), and fail
+    at once unless -q says nothing is to be printed."""
+    closed = []
+    for fd, name in ((1, "stdout"), (2, "stderr")):
+        try:
+            os.fstat(fd)
+        except OSError:
+            closed.append(name)
+            null = os.open(os.devnull, os.O_WRONLY)
+            if null != fd:
+                os.dup2(null, fd)
+                os.close(null)
+            setattr(sys, name, open(fd, "w", closefd=False))  # noqa: SIM115
+    if "stdout" in closed and not quiet:
+        raise EnvironmentFailure(
+            "cannot write to standard output: it is closed (use -q to run without output)"
         )
-        sys.exit(1)
+
+
+def _stdout_gone() -> None:
+    """After stdout failed (closed pipe, /dev/full), point it at /dev/null so that the
+    interpreter's final flush does not print a second error."""
+    with contextlib.suppress(OSError, ValueError):
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, 1)
+        os.close(null)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import time
 from pathlib import Path
 
@@ -11,7 +10,7 @@ import yaml
 
 from . import ui
 from .errors import InputError
-from .fileio import atomic_write, ensure_dir
+from .fileio import atomic_write, copy_file, ensure_dir
 
 # the package is installed editable from the repository, which holds sample_data/
 DEFAULT_SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
@@ -38,6 +37,13 @@ def find_sample_data(folder: Path | None) -> Path:
     if missing:
         raise InputError(f"sample data folder {root} lacks {', '.join(missing)}")
     return root
+
+
+def _same_dir(a: Path, b: Path) -> bool:
+    try:
+        return a.samefile(b)
+    except OSError:
+        return False
 
 
 def project_config(overlay: bool) -> dict:
@@ -91,6 +97,8 @@ def demo_cmd(out, sample_data, overlay):
       cd demo_out && mirage report poses.csv      # options come from mirage.yaml
     """
     src = find_sample_data(Path(sample_data) if sample_data else None)
+    if Path(out).exists() and _same_dir(Path(out), src):
+        raise InputError(f"--out {out} is the sample data folder; choose another folder")
     d = ensure_dir(out)
     t_all = time.perf_counter()
     # copies make the folder self-contained, so mirage.yaml can use plain names
@@ -99,7 +107,7 @@ def demo_cmd(out, sample_data, overlay):
         ("orbit_truth.csv", "orbit_truth.csv"),
         ("keyframes/poses.csv", "keyframes_poses.csv"),
     ]:
-        shutil.copyfile(src / name, d / dest)
+        copy_file(src / name, d / dest)
     steps = [
         ("calibrate", lambda: _calibrate(src, d)),
         ("build-model", lambda: _build_model(src, d)),

@@ -1,8 +1,11 @@
-"""One exception base class: the CLI turns any MirageError into a one-line message, exit 2."""
+"""One exception base class: the CLI turns any MirageError into a one-line message and its
+exit code (2: the user can fix the input; 1: the machine failed us, e.g. a full disk)."""
 
 
 class MirageError(Exception):
     """A failure the user can fix (bad input, missing file, ...). Message says what and how."""
+
+    exit_code = 2
 
 
 class InputError(MirageError):
@@ -11,6 +14,13 @@ class InputError(MirageError):
 
 class OutputError(MirageError):
     """An output cannot be written."""
+
+
+class EnvironmentFailure(MirageError):
+    """The machine, not the input: a full disk, an I/O error, a closed standard output.
+    Exit 1, so scripts can tell it from a usage error."""
+
+    exit_code = 1
 
 
 def cv_message(e: Exception) -> str:

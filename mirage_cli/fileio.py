@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 import yaml
 
-from .errors import InputError, OutputError
+from . import signals
+from .errors import EnvironmentFailure, InputError, OutputError
 
 
 def check_writable(path: str | os.PathLike) -> Path:
@@ -43,25 +45,90 @@ def _umask() -> int:
     return mask
 
 
+# Every temporary file we create, until it is renamed into place or removed: the CLI's top
+# level removes what is left on any exit path (an error, Ctrl-C, SIGTERM).
+_TEMPS: set[Path] = set()
+
+
+def register_temp(path: str | os.PathLike) -> Path:
+    p = Path(path)
+    _TEMPS.add(p)
+    return p
+
+
+def forget_temp(path: str | os.PathLike) -> None:
+    _TEMPS.discard(Path(path))
+
+
+def cleanup_temps() -> None:
+    """Remove every temporary file still registered (idempotent)."""
+    for p in list(_TEMPS):
+        with contextlib.suppress(OSError):
+            p.unlink()
+        _TEMPS.discard(p)
+
+
+def write_failure(path, e: OSError) -> EnvironmentFailure:
+    """One line naming the file, for an OS error while writing it (full disk, I/O error)."""
+    return EnvironmentFailure(f"cannot write {path}: {e.strerror or e}")
+
+
+def mkstemp_near(p: Path, suffix: str) -> tuple[int, Path]:
+    """A registered temporary file in the output's folder (so the rename is atomic)."""
+    with signals.deferred():  # a signal between creating and registering would leak it
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix, dir=p.parent or ".")
+        except OSError as e:
+            raise write_failure(p, e) from None
+        register_temp(tmp)
+    return fd, Path(tmp)
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str | None = None):
+def atomic_path(path: str | os.PathLike, suffix: str | None = None, verify=None):
     """Yield a temporary path next to `path`; rename it over `path` only on success.
 
     Writers that need a file name (cv2.FileStorage, cv2.imwrite, np.savez) write to the
-    yielded path; the extension is kept so such writers pick the right format.
+    yielded path; the extension is kept so such writers pick the right format. Before the
+    rename the file must be non-empty and pass `verify(tmp)` (True when the content reads
+    back): OpenCV's FileStorage and VideoWriter do not report write errors, so a full disk
+    shows only here. Any OS error is one line naming the file; the temporary file is gone
+    on every exit path.
     """
     p = check_writable(path)
     suffix = p.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=f".tmp{suffix}", dir=p.parent or ".")
+    fd, tmp = mkstemp_near(p, f".tmp{suffix}")
     os.close(fd)
-    os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; finished files get the usual mode
     try:
-        yield Path(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; finished files get the usual mode
+        yield tmp
+        if os.path.getsize(tmp) == 0:
+            raise EnvironmentFailure(f"cannot write {p}: nothing was written (disk full?)")
+        if verify is not None:
+            try:
+                ok = verify(tmp)
+            except Exception:  # noqa: BLE001 - any failure to read back is a bad file
+                ok = False
+            if not ok:
+                raise EnvironmentFailure(
+                    f"cannot write {p}: the written file does not read back (disk full?)"
+                )
+        _fsync(tmp)
         os.replace(tmp, p)
-    except BaseException:
+    except OSError as e:
+        raise write_failure(p, e) from None
+    finally:
         with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+            tmp.unlink()
+        forget_temp(tmp)
 
 
 @contextlib.contextmanager
@@ -70,7 +137,63 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **kw):
     with atomic_path(path) as tmp, open(tmp, mode, **kw) as f:
         yield f
         f.flush()
-        os.fsync(f.fileno())
+
+
+def video_frames_written(path: str | os.PathLike) -> int:
+    """Frames a written video holds (0 when it does not open). cv2.VideoWriter reports no
+    write error, so a video counts as written only when it reads back."""
+    import cv2
+
+    try:
+        cap = cv2.VideoCapture(str(path))
+    except cv2.error:
+        return 0
+    try:
+        return max(0, int(cap.get(cv2.CAP_PROP_FRAME_COUNT))) if cap.isOpened() else 0
+    finally:
+        cap.release()
+
+
+def copy_file(src: str | os.PathLike, dest: str | os.PathLike) -> None:
+    """Copy atomically; a full disk is one line naming `dest`."""
+    with atomic_path(dest) as tmp:
+        shutil.copyfile(src, tmp)
+
+
+def _paths(value) -> list[str]:
+    if value is None or value == "":
+        return []
+    if isinstance(value, list | tuple):
+        return [str(v) for v in value if v not in (None, "")]
+    return [str(value)]
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        if os.path.exists(a) and os.path.exists(b):
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def refuse_overwrite(outputs: dict, inputs: dict) -> None:
+    """An output that is an input (or another output) would destroy data: refuse it.
+
+    `outputs` and `inputs` map an option name (e.g. '-o', '--poses') to a path, a list of
+    paths or None. Compares by os.path.samefile where both exist (hard links, symlinks).
+    """
+    seen = [(name, p, "input") for name, v in inputs.items() for p in _paths(v)]
+    for name, v in outputs.items():
+        for o in _paths(v):
+            for other, p, kind in seen:
+                if _same_file(o, p):
+                    what = "overwrite the input" if kind == "input" else "be written twice"
+                    raise InputError(
+                        f"{name} {o} is the same file as {other} {p}: it would {what}; "
+                        "choose another output name"
+                    )
+            seen.append((name, o, "output"))
 
 
 def require_file(path: str | os.PathLike, what: str = "file") -> Path:

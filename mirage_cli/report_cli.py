@@ -7,7 +7,7 @@ import numpy as np
 import yaml
 
 from . import ui
-from .fileio import atomic_write, check_writable
+from .fileio import atomic_write, check_writable, refuse_overwrite
 from .path import load_path
 from .report import Report, make_report, plot_report
 from .trajectory import guess_format, match_times, read_pose_csv, read_trajectory
@@ -85,6 +85,10 @@ def report_cmd(poses, path, truth, output, summary, plot):
       mirage report poses.csv --path desired_path.yaml --truth truth.csv \\
           -o report.csv --summary summary.yaml --plot report.png
     """
+    refuse_overwrite(
+        {"-o": output, "--summary": summary, "--plot": plot},
+        {"POSES": poses, "--path": path, "--truth": truth},
+    )
     for out in (output, summary, plot):
         if out:
             check_writable(out)

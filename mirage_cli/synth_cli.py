@@ -11,14 +11,21 @@ import cv2
 import numpy as np
 import yaml
 
-from . import synth, ui
+from . import signals, synth, ui
 from .calibrate_cli import parse_board
 from .camera import Camera
 from .config import default_of
 from .errors import InputError, OutputError
-from .fileio import atomic_path, atomic_write, ensure_dir
+from .fileio import (
+    atomic_path,
+    atomic_write,
+    ensure_dir,
+    refuse_overwrite,
+    video_frames_written,
+)
 from .render import Renderer, stable_rng
 from .trajectory import FrameRecord, Status, write_trajectory
+from .validate import BoundedInt, FiniteFloat, float_list
 
 PARTS = ("calibration", "keyframes", "orbit")
 
@@ -41,7 +48,7 @@ def _render_all(
     items = list(enumerate(pose_lists))
     with ui.progress(len(items), label) as bar:
         if jobs > 1 and "fork" in mp.get_all_start_methods() and len(items) > 2:
-            with mp.get_context("fork").Pool(jobs) as pool:
+            with mp.get_context("fork").Pool(jobs, signals.worker_init) as pool:
                 for img in pool.imap(_render_job, items, chunksize=2):
                     bar.update(1)
                     yield img
@@ -58,15 +65,15 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 
 @click.command("synth")
 @click.argument("outdir", type=click.Path(file_okay=False))
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--seed", type=BoundedInt(min=0), default=0, show_default=True, help="Random seed.")
 @click.option(
     "--camera",
     "camera_path",
     type=click.Path(dir_okay=False),
     help="Camera YAML to render with (default: a 640x480 webcam with distortion).",
 )
-@click.option("--width", type=click.IntRange(min=16), help="Image width (scales the camera).")
-@click.option("--height", type=click.IntRange(min=16), help="Image height.")
+@click.option("--width", type=BoundedInt(min=16), help="Image width (scales the camera).")
+@click.option("--height", type=BoundedInt(min=16), help="Image height.")
 @click.option(
     "--only",
     default=",".join(PARTS),
@@ -76,15 +83,15 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 @click.option("--board", default="9x6", show_default=True, help="Inner corners COLSxROWS.")
 @click.option(
     "--square",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=0.025,
     show_default=True,
     help="Chessboard square size (m).",
 )
-@click.option("--calib-views", type=click.IntRange(min=1), default=20, show_default=True)
+@click.option("--calib-views", type=BoundedInt(min=1), default=20, show_default=True)
 @click.option(
     "--keyframe-step",
-    type=click.FloatRange(min=1, max=180),
+    type=FiniteFloat(min=1, max=180),
     default=default_of(synth.keyframe_poses, "step_deg"),
     show_default=True,
     help="Keyframe spacing in azimuth (deg).",
@@ -97,41 +104,41 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @click.option(
     "--radius",
-    type=click.FloatRange(min=0.8),
+    type=FiniteFloat(min=0.8),
     default=default_of(synth.keyframe_poses, "radius"),
     show_default=True,
     help="Keyframe circle radius (m).",
 )
 @click.option(
     "--duration",
-    type=click.FloatRange(min=0.1),
+    type=FiniteFloat(min=0.1),
     default=synth.OrbitPath.duration_s,
     show_default=True,
     help="Orbit video length (s).",
 )
-@click.option("--fps", type=click.FloatRange(min=1), default=30.0, show_default=True)
+@click.option("--fps", type=FiniteFloat(min=1), default=30.0, show_default=True)
 @click.option(
     "--noise",
-    type=click.FloatRange(min=0),
+    type=FiniteFloat(min=0),
     default=1.5,
     show_default=True,
     help="Sensor noise sigma (grey levels).",
 )
 @click.option(
     "--motion-blur",
-    type=click.IntRange(min=1),
+    type=BoundedInt(min=1),
     default=1,
     show_default=True,
     help="Sub-frame renders averaged over half a frame interval (1 = off).",
 )
 @click.option(
     "--jpeg-quality",
-    type=click.IntRange(50, 100),
+    type=BoundedInt(50, 100),
     default=default_of(synth.encode_jpeg, "quality"),
     show_default=True,
 )
 @click.option(
-    "--jobs", type=click.IntRange(min=1), default=2, show_default=True, help="Render processes."
+    "--jobs", type=BoundedInt(min=1), default=2, show_default=True, help="Render processes."
 )
 @click.option(
     "--ground-board",
@@ -180,17 +187,14 @@ def synth_cmd(
     except click.BadParameter as e:
         e.param_hint = "'--board'"
         raise
-    try:
-        hs = [float(h) for h in heights.split(",")]
-    except ValueError:
-        raise click.BadParameter(
-            f"{heights!r} is not a list of numbers", param_hint="'--heights'"
-        ) from None
+    hs = float_list(heights, "--heights")
     cam = Camera.load(camera_path) if camera_path else synth.default_camera()
     if width or height:
         w = width or round(cam.width * height / cam.height)
         h = height or round(cam.height * width / cam.width)
         cam = cam.scaled(w, h)
+    if camera_path:
+        refuse_overwrite({"OUTDIR": Path(outdir) / "camera_truth.yaml"}, {"--camera": camera_path})
     out = ensure_dir(outdir)
     t0 = time.perf_counter()
     cam.save(out / "camera_truth.yaml")
@@ -286,7 +290,7 @@ def _orbit(out: Path, renderer, duration, fps, seed, noise, blur, jobs):
     ]
     samples = synth.landmark_surface_samples()
     vis = [synth.landmark_visibility(cam, p, samples) for p in poses]
-    with atomic_path(out / "orbit.mp4") as tmp:
+    with atomic_path(out / "orbit.mp4", verify=lambda p: video_frames_written(p) == n) as tmp:
         writer = cv2.VideoWriter(
             str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (cam.width, cam.height)
         )

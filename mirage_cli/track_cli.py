@@ -10,30 +10,22 @@ import click
 import cv2
 import numpy as np
 
-from . import refine, track, ui
+from . import refine, signals, track, ui
 from .camera import Camera
 from .errors import InputError, OutputError
-from .fileio import atomic_path, check_writable, require_file
+from .fileio import (
+    atomic_path,
+    check_writable,
+    refuse_overwrite,
+    require_file,
+    video_frames_written,
+)
 from .frames import FrameSource, matching_camera
 from .model import LandmarkModel
 from .solver import METHODS, warm_up
 from .track import Tracker, TrackSettings
 from .trajectory import TRACK_COLUMNS, FrameRecord, Status, TrajectoryWriter
-
-
-def parse_when(value: str | None, fps: float, option: str = "--start") -> int | None:
-    """'12' frames, '2.5s' seconds, or None."""
-    if value is None:
-        return None
-    v = str(value).strip().lower()
-    try:
-        if v.endswith("s"):
-            return int(round(float(v[:-1]) * (fps or 30.0)))
-        return int(v)
-    except ValueError:
-        raise click.BadParameter(
-            f"{value!r}: use a frame number (120) or seconds (4s)", param_hint=f"'{option}'"
-        ) from None
+from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
 
 
 # --------------------------------------------------------------------------------------
@@ -94,24 +86,29 @@ def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: floa
 @click.option(
     "--method", type=click.Choice(METHODS), default=TrackSettings.method, show_default=True
 )
-@click.option("--start", default=None, help="First frame: frame number or seconds ('4s').")
-@click.option("--end", default=None, help="Stop before this frame / time.")
+@click.option(
+    "--start",
+    type=FRAME_OR_TIME,
+    default=None,
+    help="First frame: frame number or seconds ('4s').",
+)
+@click.option("--end", type=FRAME_OR_TIME, default=None, help="Stop before this frame / time.")
 @click.option(
     "--fps",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=None,
     help="Images: frame rate, time_s = index / FPS [default: times in the file names, if any].",
 )
 @click.option(
     "--every",
-    type=click.IntRange(min=1),
+    type=BoundedInt(min=1),
     default=1,
     show_default=True,
     help="Process every N-th frame.",
 )
 @click.option(
     "--redetect-every",
-    type=click.IntRange(min=1),
+    type=BoundedInt(min=1),
     default=TrackSettings.redetect_every,
     show_default=True,
     help="Full feature detection at least every N frames (optical flow between).",
@@ -119,13 +116,13 @@ def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: floa
 @click.option("--no-flow", is_flag=True, help="Detect and match in every frame (slower).")
 @click.option(
     "--min-inliers",
-    type=click.IntRange(min=4),
+    type=BoundedInt(min=4),
     default=TrackSettings.min_inliers,
     show_default=True,
 )
 @click.option(
     "--max-rmse",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=TrackSettings.max_rmse_px,
     show_default=True,
     help="Largest reprojection RMS (px) of an ok frame.",
@@ -167,6 +164,10 @@ def track_cmd(
 
     Example: mirage track orbit.mp4 --model landmark.mirage --camera camera.yaml -o poses.csv
     """
+    refuse_overwrite(
+        {"-o": output, "--overlay": overlay, "--tum": tum, "--kitti": kitti},
+        {"VIDEO": video, "--model": model_path, "--camera": camera_path},
+    )
     out = check_writable(output)
     for extra in (overlay, tum, kitti):
         if extra:
@@ -181,6 +182,7 @@ def track_cmd(
                 f"{camera_path}; rebuild the model or pass the model's camera"
             )
     src = FrameSource(list(video), fps=fps)
+    first, last = frame_range(start, end, src.fps)  # an empty range fails before any output
     if src.count == 0 and src.is_video:
         ui.log.warning(f"{src.video}: frame count unknown; reading until the end")
     camera = matching_camera(camera, *src.size)
@@ -194,7 +196,6 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
-    first, last = parse_when(start, src.fps), parse_when(end, src.fps, "--end")
     track_to_files(src, tracker, out, first or 0, last, every, overlay, tum, kitti)
 
 
@@ -202,7 +203,8 @@ def track_to_files(
     src, tracker, output, first=0, last=None, every=1, overlay=None, tum=None, kitti=None
 ) -> None:
     """Track the frames, writing each record to the pose CSV (and TUM, KITTI, overlay) as
-    it comes; print the summary. Ctrl-C keeps the finished frames and exits 130."""
+    it comes; print the summary. Ctrl-C or SIGTERM keeps the finished frames in every
+    output, then the interrupt goes on (exit 130 / 143)."""
     if not refine.cached_on_disk():
         ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
     warm_up()  # compile or load it before the first frame's clock starts
@@ -213,19 +215,21 @@ def track_to_files(
     ]
     stats = _track(src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m)
     _summary(stats, output)
-    if stats["interrupted"]:
-        raise click.exceptions.Exit(130)
+    if stats["interrupted"] is not None:
+        raise stats["interrupted"]  # after the outputs are in place
 
 
 def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -> dict:
-    """Run the tracker over the frames and write every record to every output as it comes."""
+    """Run the tracker over the frames and write every record to every output as it comes.
+    An interrupt keeps the finished frames (outputs renamed into place with further signals
+    held) and is returned, to be raised once the summary is out."""
     total = None
     if src.count:
         total = len(range(first, min(src.count, last) if last else src.count, every))
     done: list[tuple[str, int]] = []  # (status, inliers) per frame, for the summary
-    interrupted = False
+    interrupted = None
     t_start = time.perf_counter()
-    with contextlib.ExitStack() as stack:
+    with contextlib.ExitStack() as hold, contextlib.ExitStack() as stack:
         writers = [
             stack.enter_context(TrajectoryWriter(path, fmt, TRACK_COLUMNS if fmt == "csv" else ()))
             for path, fmt in outputs
@@ -244,13 +248,17 @@ def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -
                 if len(done) % 10 == 0:
                     rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
                     bar.update(10, f"{rate:.0f} frames/s")
-        except KeyboardInterrupt:
-            interrupted = True
+        except KeyboardInterrupt as e:
+            if not writers[0].rows:
+                signals.note(e, f"no frame finished; {outputs[0][0]} not written")
+                raise
+            interrupted = e
+            hold.enter_context(signals.deferred())  # a second signal waits for the files
+        if not done and interrupted is None:
+            raise InputError("no frames in the selected range (check --start/--end)")
     elapsed = time.perf_counter() - t_start
-    if interrupted:
-        ui.log.warning(f"interrupted: kept the {len(done)} frames done so far in {outputs[0][0]}")
-    if not done:
-        raise InputError("no frames in the selected range (check --start/--end)")
+    if interrupted is not None:
+        signals.note(interrupted, f"kept {writers[0].rows} frames in {outputs[0][0]}")
     return {"rows": done, "elapsed": elapsed, "interrupted": interrupted}
 
 
@@ -258,9 +266,11 @@ class _Overlay:
     """The overlay video, opened at the first decoded frame (whose size it takes)."""
 
     def __init__(self, path, fps: float, camera, axis_m: float):
-        self._path = atomic_path(path)
+        # VideoWriter reports no write error: the video must read back with its frames (one
+        # of slack: a signal can land between writing a frame and counting it)
+        self._path = atomic_path(path, verify=lambda p: video_frames_written(p) >= self.n - 1)
         self.fps, self.camera, self.axis_m = fps, camera, axis_m
-        self.writer = None
+        self.writer, self.n = None, 0
 
     def __enter__(self):
         self.tmp = self._path.__enter__()
@@ -280,6 +290,7 @@ class _Overlay:
             if not self.writer.isOpened():
                 raise OutputError("cannot write the overlay video (mp4v)")
         self.writer.write(draw_overlay(img, rec, self.camera, self.axis_m))
+        self.n += 1
 
     def __exit__(self, *exc):
         if self.writer is not None:

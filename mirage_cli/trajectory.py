@@ -12,7 +12,6 @@ import contextlib
 import csv
 import io
 import os
-import tempfile
 import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -23,8 +22,16 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from . import validate
 from .errors import InputError
-from .fileio import check_writable, read_csv, require_file
+from .fileio import (
+    check_writable,
+    forget_temp,
+    mkstemp_near,
+    read_csv,
+    require_file,
+    write_failure,
+)
 from .pose import R_CB, Pose
 
 
@@ -147,50 +154,68 @@ class Format:
 
 
 class TrajectoryWriter:
-    """Writes records as they come and flushes each, into a partial file until `close()`.
+    """Writes records as they come and flushes each, into a hidden partial file until
+    `close()`.
 
-    An interrupted run keeps every finished row in the partial file; `close(keep=True)`
-    (also on Ctrl-C) moves it into place, `close(keep=False)` discards it.
+    An interrupted run keeps every finished row: `close(keep=True)` (also on Ctrl-C and
+    SIGTERM) moves the file into place, `close(keep=False)` discards it. A file without
+    rows never replaces anything, so a run that fails before its first frame leaves a
+    previous good file as it was; a full disk is one line naming the file.
     """
 
     def __init__(self, path, fmt: str = "csv", extra_columns: Sequence[str] = ()):
         self.path = check_writable(path)
         self.format = FORMATS[fmt]
         self.extra = list(extra_columns)
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{self.path.name}.", suffix=".partial", dir=self.path.parent or "."
-        )
-        self.tmp = Path(tmp)
-        os.chmod(tmp, 0o644)
-        self._f = os.fdopen(fd, "w", newline="")
-        self._f.write(self.format.header(self.extra))
-        self._f.flush()
         self.rows = 0
+        fd, self.tmp = mkstemp_near(self.path, ".partial")
+        os.chmod(self.tmp, 0o644)
+        self._f = os.fdopen(fd, "w", newline="")
+        self._guard(lambda: (self._f.write(self.format.header(self.extra)), self._f.flush()))
+
+    def _guard(self, fn) -> None:
+        """Run a write; an OS error (full disk) discards the file and names the output."""
+        try:
+            fn()
+        except OSError as e:
+            self._discard()
+            raise write_failure(self.path, e) from None
 
     def write(self, rec: FrameRecord) -> None:
         line = self.format.row(rec, self.rows, self.extra)
         if line is not None:
-            self._f.write(line)
-            self._f.flush()
+            self._guard(lambda: (self._f.write(line), self._f.flush()))
         self.rows += 1
+
+    def _discard(self) -> None:
+        with contextlib.suppress(OSError):
+            self._f.close()
+        with contextlib.suppress(OSError):
+            self.tmp.unlink()
+        forget_temp(self.tmp)
 
     def close(self, keep: bool = True) -> None:
         if self._f.closed:
             return
-        self._f.flush()
-        os.fsync(self._f.fileno())
-        self._f.close()
-        if keep:
+        if not keep or self.rows == 0:
+            self._discard()
+            return
+
+        def finish():
+            self._f.flush()
+            os.fsync(self._f.fileno())
+            self._f.close()
             os.replace(self.tmp, self.path)
-        else:
-            with contextlib.suppress(OSError):
-                self.tmp.unlink()
+            forget_temp(self.tmp)
+
+        self._guard(finish)
 
     def __enter__(self):
         return self
 
     def __exit__(self, exc_type, exc, tb):
-        # Ctrl-C keeps the frames done so far; an error keeps any good file already there.
+        # Ctrl-C / SIGTERM keep the frames done so far; an error keeps any good file already
+        # there (the KeyboardInterrupt family includes the CLI's SIGTERM exception).
         self.close(keep=exc_type is None or issubclass(exc_type, KeyboardInterrupt))
         return False
 
@@ -288,13 +313,8 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
                 f"{df['frame'].iloc[i]}) has {what}, expected a number"
             )
         df[col] = num
+    validate.pose_table(df, p, require_pose)
     if require_pose:
-        q = df.loc[ok, ["qw", "qx", "qy", "qz"]].to_numpy()
-        n = np.linalg.norm(q, axis=1)
-        if np.any(n < 1e-6):
-            i = int(np.flatnonzero(ok.to_numpy())[np.argmax(n < 1e-6)])
-            raise InputError(f"pose file {p}: row {i + 2} has a zero quaternion")
-        df.loc[ok, ["qw", "qx", "qy", "qz"]] = q / n[:, None]
         angles = np.full((len(df), 4), np.nan)
         okn = ok.to_numpy()
         angles[okn] = derived_angles(

@@ -8,6 +8,8 @@ import sys
 
 import click
 
+from .errors import EnvironmentFailure
+
 log = logging.getLogger("mirage")
 
 _state = {"quiet": False, "verbose": 0}
@@ -41,11 +43,25 @@ def setup(verbose: int = 0, quiet: bool = False) -> None:
 def echo(msg: str = "") -> None:
     """A line of the human-readable summary (stdout; suppressed by --quiet)."""
     if not _state["quiet"]:
-        click.echo(msg)
+        try:
+            click.echo(msg)
+        except OSError as e:  # a closed pipe, /dev/full: the machine's failure, exit 1
+            import os
+
+            with contextlib.suppress(OSError):  # so the exit's own flush stays quiet
+                null = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(null, 1)
+                os.close(null)
+            raise EnvironmentFailure(
+                f"cannot write to standard output: {e.strerror or e}"
+            ) from None
 
 
 def progress_enabled() -> bool:
-    return not _state["quiet"] and sys.stdout.isatty()
+    try:
+        return not _state["quiet"] and sys.stdout.isatty()
+    except (AttributeError, ValueError, OSError):  # closed or replaced stdout
+        return False
 
 
 @contextlib.contextmanager

@@ -70,10 +70,12 @@ def test_error_keeps_previous_good_file(tmp_path):
 
 def test_image_column_and_minimal_input(tmp_path):
     p = tmp_path / "in.csv"
-    p.write_text("image,x_m,y_m,z_m,qw,qx,qy,qz\na.jpg,1,2,3,1,0,0,0\nb.jpg,1,2,3,2,0,0,0\n")
+    p.write_text(
+        "image,x_m,y_m,z_m,qw,qx,qy,qz\na.jpg,1,2,3,1,0,0,0\nb.jpg,1,2,3,0.7071,0,0,0.7071\n"
+    )
     df = read_pose_csv(p)
     assert df["frame"].tolist() == ["a.jpg", "b.jpg"]
-    assert np.isclose(df.loc[1, "qw"], 1.0)  # normalised
+    assert np.isclose(np.hypot(df.loc[1, "qw"], df.loc[1, "qz"]), 1.0, atol=1e-12)  # normalised
     assert (df["status"] == "ok").all()
 
 
@@ -90,6 +92,12 @@ def test_image_column_and_minimal_input(tmp_path):
         ("x_m,y_m,z_m,qw,qx,qy,qz\n1,2,3,1,0,0,0\n", "no 'frame' or 'image'"),
         ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n", "no rows"),
         ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,2,3,0,0,0,0\n", "zero quaternion"),
+        ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,2,3,2,0,0,0\n", "column 'qw..qz' row 2 (frame 0)"),
+        ("frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,2,3,1,0,0,0\n1,inf,2,3,1,0,0,0\n", "'x_m' row 3"),
+        (
+            "frame,x_m,y_m,z_m,qw,qx,qy,qz\n7,1,2,3,1,0,0,0\n7.0,1,2,3,1,0,0,0\n",
+            "row 3 (frame 7.0) repeats the frame of row 2",
+        ),
     ],
 )
 def test_clear_errors(tmp_path, text, msg):

@@ -1,0 +1,89 @@
+"""SIGINT and SIGTERM as exceptions, so every `finally` and `with` cleans up.
+
+Python turns SIGINT into KeyboardInterrupt but lets SIGTERM (timeout, kill, docker,
+Slurm) end the process on the spot, leaving temporary files and a half-finished output.
+`install()` makes SIGTERM raise `Terminated`, a KeyboardInterrupt, so the code that keeps
+finished frames on Ctrl-C does the same on SIGTERM. This module imports nothing heavy: it
+is installed before the rest of the program is imported.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+
+EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
+_state = {"deferring": 0, "pending": None}
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread on SIGTERM."""
+
+    signum = signal.SIGTERM
+
+
+def _exception(signum: int) -> KeyboardInterrupt:
+    return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
+def _handler(signum, frame):
+    if _state["deferring"]:
+        _state["pending"] = _state["pending"] or signum
+        return
+    raise _exception(signum)
+
+
+def install() -> None:
+    """Both signals raise; safe to call more than once (main thread only)."""
+    with contextlib.suppress(ValueError):  # not the main thread: leave the handlers alone
+        signal.signal(signal.SIGINT, _handler)
+        signal.signal(signal.SIGTERM, _handler)
+
+
+def signal_of(exc: BaseException) -> int:
+    return getattr(exc, "signum", signal.SIGINT)
+
+
+def exit_code(exc: BaseException) -> int:
+    return EXIT_CODES.get(signal_of(exc), 130)
+
+
+def message(exc: BaseException) -> str:
+    """'mirage: interrupted (SIGTERM); kept 42 frames in poses.csv'."""
+    name = signal.Signals(signal_of(exc)).name
+    note = getattr(exc, "mirage_note", None)
+    return f"mirage: interrupted ({name})" + (f"; {note}" if note else "")
+
+
+def note(exc: BaseException, text: str) -> None:
+    """Say what the interrupted command kept (shown in the one interrupt line)."""
+    with contextlib.suppress(AttributeError):
+        exc.mirage_note = text
+
+
+@contextlib.contextmanager
+def deferred():
+    """Hold SIGINT/SIGTERM while finishing outputs (rename into place, cleanup); a signal
+    that came meanwhile is raised at the end, unless an exception already ends the run."""
+    _state["deferring"] += 1
+    try:
+        yield
+    except BaseException:
+        _leave(raise_pending=False)
+        raise
+    _leave(raise_pending=True)
+
+
+def _leave(raise_pending: bool) -> None:
+    _state["deferring"] -= 1
+    pending = _state["pending"]
+    if pending and not _state["deferring"]:
+        _state["pending"] = None
+        if raise_pending:
+            raise _exception(pending)
+
+
+def worker_init() -> None:
+    """For worker processes: the parent handles both signals and stops the pool."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)

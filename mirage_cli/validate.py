@@ -1,0 +1,192 @@
+"""The one place where numbers from users are checked: option types and input tables.
+
+Python's float() accepts 'nan', 'inf' and 'infs'-like spellings, and NaN compares False
+with every bound, so click's FloatRange lets NaN through (a NaN threshold silently
+disables a filter or loses every frame). Every numeric option uses a type from here;
+every pose table read from a file goes through `pose_table`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+
+import click
+import numpy as np
+import pandas as pd
+
+from .errors import InputError
+
+QUAT_TOL = 0.01  # |norm - 1| up to this is rounding in a hand-written file: normalised
+
+
+class FiniteFloat(click.FloatRange):
+    """A finite float within optional bounds (NaN and +-inf are refused with one line)."""
+
+    name = "number"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, bool) or isinstance(value, list | dict | tuple):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        rv = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(rv):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return super().convert(rv, param, ctx)
+
+
+class BoundedInt(click.IntRange):
+    """An integer within bounds; refuses floats with a fraction and lists from a config."""
+
+    name = "integer"
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, bool) or isinstance(value, list | dict | tuple):
+            self.fail(f"{value!r} is not an integer", param, ctx)
+        if isinstance(value, float) and not value.is_integer():
+            self.fail(f"{value!r} is not an integer", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+@dataclass(frozen=True)
+class When:
+    """A position in a video: a frame number, or seconds (needs the frame rate)."""
+
+    value: float
+    seconds: bool
+
+    def frame(self, fps: float) -> int:
+        return int(round(self.value * (fps or 30.0))) if self.seconds else int(self.value)
+
+    def __str__(self) -> str:
+        return f"{self.value:g}s" if self.seconds else str(int(self.value))
+
+
+_WHEN = re.compile(r"\s*(\d+)\s*|\s*(\d+(?:\.\d*)?|\.\d+)\s*s\s*", re.IGNORECASE)
+
+
+class FrameOrTime(click.ParamType):
+    """'120' (frame number) or '4s' / '2.5s' (seconds); never negative, NaN or infinite."""
+
+    name = "frame|seconds"
+
+    def convert(self, value, param, ctx):
+        if value is None or isinstance(value, When):
+            return value
+        if isinstance(value, bool) or not isinstance(value, int | float | str):
+            self.fail(f"{value!r}: use a frame number (120) or seconds (4s)", param, ctx)
+        if isinstance(value, int | float):
+            value = (
+                str(value)
+                if not (isinstance(value, float) and value.is_integer())
+                else str(int(value))
+            )
+        m = _WHEN.fullmatch(value)
+        if not m:
+            self.fail(f"{value!r}: use a frame number (120) or seconds (4s)", param, ctx)
+        if m.group(1) is not None:
+            return When(float(int(m.group(1))), False)
+        return When(float(m.group(2)), True)
+
+
+FRAME_OR_TIME = FrameOrTime()
+
+
+def frame_range(start: When | None, end: When | None, fps: float) -> tuple[int, int | None]:
+    """First frame and the frame to stop before; an empty range is a usage error."""
+    first = start.frame(fps) if start is not None else 0
+    last = end.frame(fps) if end is not None else None
+    if last is not None and last <= first:
+        raise click.BadParameter(
+            f"--end {end} (frame {last}) must come after --start {start or 0} (frame {first})",
+            param_hint="'--end'",
+        )
+    return first, last
+
+
+def float_list(text, option: str, min_value: float | None = None) -> list[float]:
+    """Comma-separated finite numbers (e.g. --heights 0.4,0.8)."""
+    parts = [t.strip() for t in str(text).split(",")]
+    try:
+        vals = [float(t) for t in parts]
+    except ValueError:
+        vals = []
+    if not vals or not all(math.isfinite(v) for v in vals):
+        raise click.BadParameter(
+            f"{text!r} is not a comma-separated list of finite numbers", param_hint=f"'{option}'"
+        )
+    if min_value is not None and min(vals) < min_value:
+        raise click.BadParameter(
+            f"{text!r}: every value must be >= {min_value:g}", param_hint=f"'{option}'"
+        )
+    return vals
+
+
+# --------------------------------------------------------------------------------------
+# tables
+# --------------------------------------------------------------------------------------
+def _where(path, df: pd.DataFrame, i: int, col: str | None = None) -> str:
+    frame = df["frame"].iloc[i] if "frame" in df.columns else "?"
+    c = f"column '{col}' " if col else ""
+    return f"pose file {path}: {c}row {i + 2} (frame {str(frame).strip()})"
+
+
+def unique_frames(df: pd.DataFrame, path, keys: pd.Series | None = None) -> None:
+    """A frame listed twice would be used at one of two poses or counted twice: refuse."""
+    if keys is None:  # '7' and '7.0' are the same video frame
+        text = df["frame"].astype(str).str.strip()
+        num = pd.to_numeric(text, errors="coerce")
+        integral = (num.notna() & (num == np.round(num))).to_numpy()
+        keys = text.copy()
+        keys[integral] = num[integral].astype("int64").astype(str)
+    k = keys.reset_index(drop=True)
+    dup = k.duplicated(keep="first").to_numpy()
+    if dup.any():
+        i = int(np.flatnonzero(dup)[0])
+        first = int(np.flatnonzero((k == k.iloc[i]).to_numpy())[0])
+        raise InputError(
+            f"{_where(path, df, i)} repeats the frame of row {first + 2}; "
+            "each frame may appear once"
+        )
+
+
+def finite_columns(df: pd.DataFrame, path, columns) -> None:
+    """Numeric pose columns hold finite numbers (NaN only where a cell was empty)."""
+    for col in columns:
+        if col not in df.columns:
+            continue
+        v = df[col].to_numpy(dtype=float)
+        bad = np.isinf(v)
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(f"{_where(path, df, i, col)} is {v[i]}, expected a finite number")
+
+
+def unit_quaternions(df: pd.DataFrame, path, ok: np.ndarray, tol: float = QUAT_TOL) -> None:
+    """Normalise quaternions of `ok` rows in place when |norm - 1| <= tol; refuse beyond,
+    since a far-off norm means a wrong column order or a unit mix-up, not rounding."""
+    cols = ["qw", "qx", "qy", "qz"]
+    q = df.loc[ok, cols].to_numpy(dtype=float)
+    if not len(q):
+        return
+    n = np.linalg.norm(q, axis=1)
+    bad = ~(np.abs(n - 1.0) <= tol)
+    if bad.any():
+        i = int(np.flatnonzero(ok)[np.argmax(bad)])
+        norm = n[np.argmax(bad)]
+        what = "a zero quaternion" if norm < 1e-6 else f"a quaternion of norm {norm:.4g}"
+        raise InputError(
+            f"{_where(path, df, i, 'qw..qz')} has {what}; expected a unit quaternion "
+            f"(norm 1 +- {tol:g})"
+        )
+    df.loc[ok, cols] = q / n[:, None]
+
+
+def pose_table(df: pd.DataFrame, path, require_pose: bool = True) -> None:
+    """Checks of a parsed pose table (columns already numeric): finite values, one row per
+    frame and unit quaternions. Raises InputError naming the file, row and column."""
+    ok = (df["status"] == "ok").to_numpy()
+    finite_columns(df, path, ["time_s", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz"])
+    unique_frames(df, path)
+    if require_pose:
+        unit_quaternions(df, path, ok)

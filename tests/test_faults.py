@@ -1,0 +1,723 @@
+"""A catalogue of bad inputs and faults across every command (issue 14).
+
+Each case asserts the error contract: the exit code (2 a user error, 1 the machine, 130 /
+143 a signal), exactly one line on stderr, no traceback, no Python warning, and every
+file that existed before (good outputs, the inputs themselves) byte-identical after,
+with no temporary file left behind. Argument and input cases run in-process through
+`cli.main` (one import for all); signals, a closed stdout and start-up run as real
+processes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+from conftest import ROOT, SAMPLE
+
+from mirage_cli import cli
+
+CAL = ROOT / "tests" / "data" / "chessboard-right"
+GOOD = "frame,x_m,y_m,z_m,qw,qx,qy,qz\n0,1,2,0.5,1,0,0,0\n1,1.1,2,0.5,1,0,0,0\n"
+BAD_FILES = {
+    "dup.csv": GOOD + "1,1.2,2,0.5,1,0,0,0\n",
+    "dup_float.csv": GOOD + "1.0,1.2,2,0.5,1,0,0,0\n",
+    "inf.csv": GOOD + "2,inf,2,0.5,1,0,0,0\n",
+    "ninf.csv": GOOD + "2,1,-inf,0.5,1,0,0,0\n",
+    "nan.csv": GOOD + "2,1,nan,0.5,1,0,0,0\n",
+    "tinf.csv": "frame,time_s,x_m,y_m,z_m,qw,qx,qy,qz\n0,inf,1,2,0.5,1,0,0,0\n",
+    "q2.csv": GOOD + "2,1,2,0.5,2,0,0,0\n",
+    "q0.csv": GOOD + "2,1,2,0.5,0,0,0,0\n",
+    "qhalf.csv": GOOD + "2,1,2,0.5,0.5,0.5,0,0\n",
+    "empty.csv": "",
+    "header.csv": "frame,x_m,y_m,z_m,qw,qx,qy,qz\n",
+    "nocol.csv": "frame,x_m,y_m,z_m,qw,qx,qy\n0,1,2,3,1,0,0\n",
+    "text.csv": "\x00\x01\x02garbage\xff",
+    "bad.yaml": "type: circle\ncenter: [0, 0\n",
+    "notzip.mirage": "this is not a model\n",
+}
+# good outputs that exist before every case: a failing run must leave them as they are
+PROTECTED = {
+    "out.csv": "frame,previous,good,output\n",
+    "out.yaml": "previous: good camera\n",
+    "out.png": "previous good plot",
+    "out.mirage": "previous good model",
+    "out.tum": "# previous good trajectory\n",
+}
+
+
+@dataclass
+class Case:
+    id: str
+    args: list
+    code: int = 2
+    contains: str = ""
+    needs: list = field(default_factory=list)  # extra setup: "kp_copy", "synth_cam", "config"
+
+
+def C(id, *args, code=2, contains="", needs=()):  # noqa: N802 - a table row
+    return pytest.param(Case(id, list(args), code, contains, list(needs)), id=id)
+
+
+TRACK = ["track", "{V}", "--model", "{M}", "-o", "out.csv"]
+CALIB = ["calibrate", "{CAL}", "--board", "9x6", "-o", "out.yaml"]
+BUILD = ["build-model", "{KF}", "--camera", "{CAM}", "-o", "out.mirage"]
+REPORT = ["report", "{TRUTH}", "--path", "{PATH}", "-o", "out.csv"]
+SYNTH = ["synth", "synth_out"]
+
+CASES = [
+    # --- the program --------------------------------------------------------------------
+    C("unknown-command", "frobnicate", contains="no such command"),
+    C("unknown-option", "track", "--bogus", contains="--bogus"),
+    C("missing-config", "--config", "nope.yaml", "synth", "x", contains="not found"),
+    C("config-nan", "track", "{V}", "-o", "out.csv", needs=["config"], contains="--max-rmse"),
+    # --- track: numeric options ------------------------------------------------------------
+    C("track-max-rmse-nan", *TRACK, "--max-rmse", "nan", contains="--max-rmse"),
+    C("track-max-rmse-inf", *TRACK, "--max-rmse", "inf", contains="finite"),
+    C("track-max-rmse-neg", *TRACK, "--max-rmse", "-1", contains="--max-rmse"),
+    C("track-max-rmse-zero", *TRACK, "--max-rmse", "0", contains="--max-rmse"),
+    C("track-max-rmse-text", *TRACK, "--max-rmse", "abc", contains="--max-rmse"),
+    C("track-start-infs", *TRACK, "--start", "infs", contains="--start"),
+    C("track-start-nan", *TRACK, "--start", "nan", contains="--start"),
+    C("track-start-nans", *TRACK, "--start", "nans", contains="--start"),
+    C("track-start-neg", *TRACK, "--start", "-5", contains="--start"),
+    C("track-start-neg-s", *TRACK, "--start", "-1s", contains="--start"),
+    C("track-end-infs", *TRACK, "--end", "infs", contains="--end"),
+    C("track-end-text", *TRACK, "--end", "soon", contains="--end"),
+    C("track-end-before-start", *TRACK, "--start", "30", "--end", "10", contains="--end"),
+    C("track-end-equals-start", *TRACK, "--start", "5", "--end", "5", contains="--end"),
+    C("track-end-before-start-s", *TRACK, "--start", "2s", "--end", "1s", contains="--end"),
+    C("track-start-past-end", *TRACK, "--start", "99999", contains="no frames"),
+    C("track-every-zero", *TRACK, "--every", "0", contains="--every"),
+    C("track-every-nan", *TRACK, "--every", "nan", contains="--every"),
+    C("track-redetect-zero", *TRACK, "--redetect-every", "0", contains="--redetect-every"),
+    C("track-min-inliers-3", *TRACK, "--min-inliers", "3", contains="--min-inliers"),
+    C("track-min-inliers-frac", *TRACK, "--min-inliers", "4.5", contains="--min-inliers"),
+    C("track-method", *TRACK, "--method", "bogus", contains="--method"),
+    # --- track: files ---------------------------------------------------------------------
+    C("track-out-is-video", "track", "{V}", "--model", "{M}", "-o", "{V}", contains="same file"),
+    C("track-out-is-model", "track", "{V}", "--model", "{M}", "-o", "{M}", contains="same file"),
+    C("track-overlay-is-video", *TRACK, "--overlay", "{V}", contains="same file"),
+    C("track-tum-is-out", *TRACK, "--tum", "out.csv", contains="same file"),
+    C("track-out-is-camera", *TRACK[:-1], "{CAM}", "--camera", "{CAM}", contains="same file"),
+    C(
+        "track-out-via-dotdot",
+        *TRACK[:-1],
+        "../{TMPNAME}/out.csv",
+        "--tum",
+        "out.csv",
+        contains="same file",
+    ),  # fmt: skip
+    C("track-model-missing", "track", "{V}", "--model", "nope.mirage", contains="not found"),
+    C("track-model-not-zip", "track", "{V}", "--model", "notzip.mirage", contains="model"),
+    C("track-video-missing", "track", "nope.mp4", "--model", "{M}", contains="not found"),
+    C("track-video-is-text", "track", "bad.yaml", "--model", "{M}", contains="bad.yaml"),
+    C("track-out-missing-dir", *TRACK[:-1], "no/such/dir.csv", contains="does not exist"),
+    C("track-out-is-dir", *TRACK[:-1], ".", contains="directory"),
+    # --- calibrate ----------------------------------------------------------------------
+    C("cal-square-nan", *CALIB, "--square", "nan", contains="--square"),
+    C("cal-square-inf", *CALIB, "--square", "inf", contains="--square"),
+    C("cal-square-neg", *CALIB, "--square", "-1", contains="--square"),
+    C("cal-square-zero", *CALIB, "--square", "0", contains="--square"),
+    C("cal-square-text", *CALIB, "--square", "big", contains="--square"),
+    C("cal-marker-nan", *CALIB, "--square", "0.02", "--marker", "nan", contains="--marker"),
+    C(
+        "cal-min-motion-nan",
+        *CALIB,
+        "--square",
+        "0.02",
+        "--min-motion",
+        "nan",
+        contains="--min-motion",
+    ),  # fmt: skip
+    C(
+        "cal-min-motion-neg",
+        *CALIB,
+        "--square",
+        "0.02",
+        "--min-motion",
+        "-1",
+        contains="--min-motion",
+    ),  # fmt: skip
+    C(
+        "cal-max-view-inf",
+        *CALIB,
+        "--square",
+        "0.02",
+        "--max-view-error",
+        "inf",
+        contains="--max-view-error",
+    ),  # fmt: skip
+    C(
+        "cal-reject-nan",
+        *CALIB,
+        "--square",
+        "0.02",
+        "--reject-factor",
+        "nan",
+        contains="--reject-factor",
+    ),  # fmt: skip
+    C("cal-every-zero", *CALIB, "--square", "0.02", "--every", "0", contains="--every"),
+    C(
+        "cal-board-one",
+        "calibrate",
+        "{CAL}",
+        "--board",
+        "9",
+        "--square",
+        "0.02",
+        contains="--board",
+    ),  # fmt: skip
+    C(
+        "cal-board-1x6",
+        "calibrate",
+        "{CAL}",
+        "--board",
+        "1x6",
+        "--square",
+        "0.02",
+        contains="--board",
+    ),  # fmt: skip
+    C(
+        "cal-board-nan",
+        "calibrate",
+        "{CAL}",
+        "--board",
+        "nanxnan",
+        "--square",
+        "0.02",
+        contains="--board",
+    ),  # fmt: skip
+    C(
+        "cal-subpix-zero",
+        *CALIB,
+        "--square",
+        "0.02",
+        "--subpix-window",
+        "0",
+        contains="--subpix-window",
+    ),  # fmt: skip
+    C("cal-workers-zero", *CALIB, "--square", "0.02", "--workers", "0", contains="--workers"),
+    C("cal-pattern", *CALIB, "--square", "0.02", "--pattern", "dots", contains="--pattern"),
+    C("cal-model-7", *CALIB, "--square", "0.02", "--model", "7", contains="--model"),
+    C(
+        "cal-out-is-image",
+        "calibrate",
+        "{CAL}/right01.jpg",
+        "{CAL}/right02.jpg",
+        "--board",
+        "9x6",
+        "--square",
+        "0.02",
+        "-o",
+        "{CAL}/right01.jpg",
+        contains="same file",
+    ),  # fmt: skip
+    C(
+        "cal-report-is-out",
+        *CALIB,
+        "--square",
+        "0.02",
+        "--report",
+        "out.yaml",
+        contains="same file",
+    ),  # fmt: skip
+    C(
+        "cal-input-missing",
+        "calibrate",
+        "nope/",
+        "--board",
+        "9x6",
+        "--square",
+        "0.02",
+        "-o",
+        "out.yaml",
+        contains="not found",
+    ),  # fmt: skip
+    # --- build-model ----------------------------------------------------------------------
+    C(
+        "bm-spacing-nan",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--spacing-deg",
+        "nan",
+        contains="--spacing-deg",
+    ),  # fmt: skip
+    C(
+        "bm-spacing-low",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--spacing-deg",
+        "0.5",
+        contains="--spacing-deg",
+    ),  # fmt: skip
+    C(
+        "bm-spacing-high",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--spacing-deg",
+        "91",
+        contains="--spacing-deg",
+    ),  # fmt: skip
+    C("bm-nfeatures", *BUILD, "--poses", "{KP}", "--nfeatures", "10", contains="--nfeatures"),
+    C(
+        "bm-reproj-nan",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--max-reproj-px",
+        "nan",
+        contains="--max-reproj-px",
+    ),  # fmt: skip
+    C(
+        "bm-angle-inf",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--min-angle-deg",
+        "inf",
+        contains="--min-angle-deg",
+    ),  # fmt: skip
+    C(
+        "bm-angle-neg",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--min-angle-deg",
+        "-1",
+        contains="--min-angle-deg",
+    ),  # fmt: skip
+    C("bm-roi-nan", *BUILD, "--poses", "{KP}", "--roi", "1,nan,2", contains="--roi"),
+    C("bm-roi-short", *BUILD, "--poses", "{KP}", "--roi", "1,2", contains="--roi"),
+    C("bm-detector", *BUILD, "--poses", "{KP}", "--detector", "bogus", contains="--detector"),
+    C(
+        "bm-out-is-poses",
+        "build-model",
+        "{KF}",
+        "--camera",
+        "{CAM}",
+        "--poses",
+        "kp.csv",
+        "-o",
+        "kp.csv",
+        needs=["kp_copy"],
+        contains="same file",
+    ),  # fmt: skip
+    C(
+        "bm-out-is-camera",
+        "build-model",
+        "{KF}",
+        "--camera",
+        "{CAM}",
+        "--poses",
+        "{KP}",
+        "-o",
+        "{CAM}",
+        contains="same file",
+    ),  # fmt: skip
+    C("bm-poses-dup", *BUILD, "--poses", "dup.csv", contains="repeats the frame of row 3"),
+    C("bm-poses-dup-float", *BUILD, "--poses", "dup_float.csv", contains="repeats"),
+    C("bm-poses-inf", *BUILD, "--poses", "inf.csv", contains="column 'x_m' row 4"),
+    C("bm-poses-ninf", *BUILD, "--poses", "ninf.csv", contains="column 'y_m' row 4"),
+    C("bm-poses-tinf", *BUILD, "--poses", "tinf.csv", contains="column 'time_s' row 2"),
+    C("bm-poses-nan", *BUILD, "--poses", "nan.csv", contains="column 'y_m' row 4"),
+    C("bm-poses-q2", *BUILD, "--poses", "q2.csv", contains="unit quaternion"),
+    C("bm-poses-q0", *BUILD, "--poses", "q0.csv", contains="zero quaternion"),
+    C("bm-poses-qhalf", *BUILD, "--poses", "qhalf.csv", contains="norm 0.7071"),
+    C("bm-poses-empty", *BUILD, "--poses", "empty.csv", contains="empty"),
+    C("bm-poses-header", *BUILD, "--poses", "header.csv", contains="no rows"),
+    C("bm-poses-nocol", *BUILD, "--poses", "nocol.csv", contains="qz"),
+    C("bm-poses-binary", *BUILD, "--poses", "text.csv", contains="text.csv"),
+    C(
+        "bm-poses-and-board",
+        *BUILD,
+        "--poses",
+        "{KP}",
+        "--board",
+        "bad.yaml",
+        contains="exactly one",
+    ),  # fmt: skip
+    C("bm-no-poses", *BUILD, contains="exactly one"),
+    C(
+        "bm-camera-missing",
+        "build-model",
+        "{KF}",
+        "--camera",
+        "nope.yaml",
+        "--poses",
+        "{KP}",
+        "-o",
+        "out.mirage",
+        contains="not found",
+    ),  # fmt: skip
+    # --- inspect -------------------------------------------------------------------------
+    C("inspect-plot-is-model", "inspect", "{M}", "--plot", "{M}", contains="same file"),
+    C("inspect-missing", "inspect", "nope.mirage", contains="not found"),
+    C("inspect-not-zip", "inspect", "notzip.mirage", "--plot", "out.png", contains="model"),
+    C("inspect-plot-dir", "inspect", "{M}", "--plot", "no/dir.png", contains="does not exist"),
+    # --- report --------------------------------------------------------------------------
+    C(
+        "report-out-is-poses",
+        "report",
+        "{TRUTH}",
+        "--path",
+        "{PATH}",
+        "-o",
+        "{TRUTH}",
+        contains="same file",
+    ),  # fmt: skip
+    C("report-summary-is-poses", *REPORT, "--summary", "{TRUTH}", contains="same file"),
+    C("report-plot-is-path", *REPORT, "--plot", "{PATH}", contains="same file"),
+    C("report-out-is-summary", *REPORT, "--summary", "out.csv", contains="same file"),
+    C(
+        "report-poses-dup",
+        "report",
+        "dup.csv",
+        "--path",
+        "{PATH}",
+        "-o",
+        "out.csv",
+        contains="repeats",
+    ),  # fmt: skip
+    C("report-truth-dup", *REPORT, "--truth", "dup.csv", contains="repeats"),
+    C("report-truth-dup-float", *REPORT, "--truth", "dup_float.csv", contains="repeats"),
+    C(
+        "report-poses-inf",
+        "report",
+        "inf.csv",
+        "--path",
+        "{PATH}",
+        "-o",
+        "out.csv",
+        contains="finite",
+    ),  # fmt: skip
+    C("report-truth-q2", *REPORT, "--truth", "q2.csv", contains="unit quaternion"),
+    C(
+        "report-poses-empty",
+        "report",
+        "empty.csv",
+        "--path",
+        "{PATH}",
+        "-o",
+        "out.csv",
+        contains="empty",
+    ),  # fmt: skip
+    C(
+        "report-path-missing",
+        "report",
+        "{TRUTH}",
+        "--path",
+        "nope.yaml",
+        "-o",
+        "out.csv",
+        contains="not found",
+    ),  # fmt: skip
+    C(
+        "report-path-bad-yaml",
+        "report",
+        "{TRUTH}",
+        "--path",
+        "bad.yaml",
+        "-o",
+        "out.csv",
+        contains="bad.yaml",
+    ),  # fmt: skip
+    # --- synth ---------------------------------------------------------------------------
+    C("synth-noise-nan", *SYNTH, "--noise", "nan", contains="--noise"),
+    C("synth-duration-inf", *SYNTH, "--duration", "inf", contains="--duration"),
+    C("synth-fps-zero", *SYNTH, "--fps", "0", contains="--fps"),
+    C("synth-fps-nan", *SYNTH, "--fps", "nan", contains="--fps"),
+    C("synth-radius-nan", *SYNTH, "--radius", "nan", contains="--radius"),
+    C("synth-step-nan", *SYNTH, "--keyframe-step", "nan", contains="--keyframe-step"),
+    C("synth-heights-nan", *SYNTH, "--heights", "0.5,nan", contains="--heights"),
+    C("synth-heights-inf", *SYNTH, "--heights", "inf", contains="--heights"),
+    C("synth-heights-text", *SYNTH, "--heights", "low", contains="--heights"),
+    C("synth-seed-neg", *SYNTH, "--seed", "-1", contains="--seed"),
+    C("synth-seed-frac", *SYNTH, "--seed", "1.5", contains="--seed"),
+    C("synth-width-small", *SYNTH, "--width", "8", contains="--width"),
+    C("synth-quality", *SYNTH, "--jpeg-quality", "101", contains="--jpeg-quality"),
+    C("synth-jobs-zero", *SYNTH, "--jobs", "0", contains="--jobs"),
+    C("synth-square-inf", *SYNTH, "--square", "inf", contains="--square"),
+    C("synth-views-zero", *SYNTH, "--calib-views", "0", contains="--calib-views"),
+    C("synth-blur-zero", *SYNTH, "--motion-blur", "0", contains="--motion-blur"),
+    C("synth-only-bogus", *SYNTH, "--only", "bogus", contains="bogus"),
+    C(
+        "synth-camera-is-output",
+        "synth",
+        "so",
+        "--camera",
+        "so/camera_truth.yaml",
+        needs=["synth_cam"],
+        contains="same file",
+    ),  # fmt: skip
+    # --- demo ----------------------------------------------------------------------------
+    C("demo-out-is-sample", "demo", "--out", "{SAMPLE}", contains="sample data"),
+    C("demo-sample-missing", "demo", "--sample-data", "nope", contains="not found"),
+]
+
+
+def _fill(args: list, p: dict) -> list[str]:
+    return [str(a).format(**p) for a in args]
+
+
+def _snapshot(paths) -> dict:
+    out = {}
+    for p in paths:
+        p = Path(p)
+        files = [f for f in p.rglob("*") if f.is_file()] if p.is_dir() else [p]
+        for f in files:
+            out[str(f)] = hashlib.sha256(f.read_bytes()).hexdigest()
+    return out
+
+
+def _hidden(folder: Path) -> list[str]:
+    return sorted(str(f) for f in folder.rglob(".*"))
+
+
+@pytest.fixture
+def world(tmp_path, sample_model):
+    for name, text in {**BAD_FILES, **PROTECTED}.items():
+        (tmp_path / name).write_text(text)
+    return {
+        "V": SAMPLE / "orbit.mp4",
+        "M": sample_model,
+        "CAM": SAMPLE / "camera_truth.yaml",
+        "KF": SAMPLE / "keyframes",
+        "KP": SAMPLE / "keyframes" / "poses.csv",
+        "PATH": SAMPLE / "desired_path.yaml",
+        "TRUTH": SAMPLE / "orbit_truth.csv",
+        "CAL": CAL,
+        "SAMPLE": SAMPLE,
+        "TMP": tmp_path,
+        "TMPNAME": tmp_path.name,
+    }
+
+
+@contextlib.contextmanager
+def _own_signal_handlers():
+    """cli.main installs its handlers; give pytest its own back afterwards."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+
+
+def run_in_process(argv: list[str], capsys) -> tuple[int, str, list]:
+    capsys.readouterr()
+    with (
+        _own_signal_handlers(),
+        warnings.catch_warnings(record=True) as caught,
+        pytest.raises(SystemExit) as e,
+    ):
+        warnings.simplefilter("always")
+        cli.main(argv)
+    _, err = capsys.readouterr()
+    return e.value.code, err, [str(w.message) for w in caught]
+
+
+def assert_contract(code, err, want_code, contains="", prefix="mirage: error: "):
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert code == want_code, (code, err)
+    assert len(lines) == 1 and len(err.strip().splitlines()) == 1, err
+    assert "Traceback" not in err
+    assert lines[0].startswith(prefix), lines[0]
+    if contains:
+        assert contains.lower() in lines[0].lower(), lines[0]
+    return lines[0]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_catalogue(case: Case, world, capsys, monkeypatch):
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    if "kp_copy" in case.needs:
+        shutil.copyfile(world["KP"], tmp / "kp.csv")
+    if "synth_cam" in case.needs:
+        (tmp / "so").mkdir()
+        shutil.copyfile(world["CAM"], tmp / "so" / "camera_truth.yaml")
+    if "config" in case.needs:
+        (tmp / "mirage.yaml").write_text(f"track:\n  model: {world['M']}\n  max-rmse: .nan\n")
+    watched = [tmp, world["M"], world["CAM"], world["KP"], world["TRUTH"], world["PATH"]]
+    watched += [world["V"], CAL / "right01.jpg"]
+    before = _snapshot(watched)
+    code, err, warned = run_in_process(_fill(case.args, world), capsys)
+    assert_contract(code, err, case.code, case.contains)
+    assert not warned, warned
+    assert _snapshot(watched) == before, "an existing file changed"
+    assert not _hidden(tmp), _hidden(tmp)
+    assert not (tmp / "synth_out").exists()  # nothing started before the check
+
+
+def test_catalogue_size():
+    assert len(CASES) >= 80
+
+
+# --- a full disk ------------------------------------------------------------------------
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 256 KiB tmpfs filled to the last byte, holding good outputs from before."""
+    mnt = tmp_path / "full"
+    mnt.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("a full disk needs root to mount a small tmpfs")
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], capture_output=True
+    )
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    try:
+        for name, text in PROTECTED.items():
+            (mnt / name).write_text(text)
+        with contextlib.suppress(OSError), open(mnt / "filler", "wb", buffering=0) as f:
+            while True:
+                f.write(b"\0" * 4096)
+        with contextlib.suppress(OSError), open(mnt / "filler", "ab", buffering=0) as f:
+            while True:  # the last partial block
+                f.write(b"\0")
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+FULL_DISK = [
+    ("calibrate", [*CALIB[:-1], "{FULL}/out.yaml", "--square", "0.025"]),
+    ("report", [*REPORT[:-1], "{FULL}/out.csv"]),
+    ("report-summary", [*REPORT[:-1], "new.csv", "--summary", "{FULL}/out.yaml"]),
+    ("track", [*TRACK[:-1], "{FULL}/out.csv", "--end", "2"]),
+    ("track-tum", [*TRACK[:-1], "new.csv", "--end", "2", "--tum", "{FULL}/out.tum"]),
+    ("inspect-plot", ["inspect", "{M}", "--plot", "{FULL}/out.png"]),
+    ("synth-camera", ["synth", "{FULL}/s", "--only", "calibration", "--calib-views", "1"]),
+]
+
+
+@pytest.mark.parametrize("args", [a for _, a in FULL_DISK], ids=[n for n, _ in FULL_DISK])
+def test_full_disk(args, world, full_disk, capsys, monkeypatch):
+    monkeypatch.chdir(world["TMP"])
+    if args[0] == "calibrate":  # five views are enough to reach the write
+        views = world["TMP"] / "views"
+        views.mkdir()
+        for f in sorted(CAL.glob("*.jpg"))[:5]:
+            shutil.copyfile(f, views / f.name)
+        args = ["calibrate", str(views), *args[2:]]
+    before = _snapshot([full_disk, world["TMP"]])
+    code, err, _ = run_in_process(_fill(args, {**world, "FULL": full_disk}), capsys)
+    line = assert_contract(code, err, 1, "cannot write")
+    assert str(full_disk) in line, line
+    assert "no space left" in line.lower() or "disk full" in line, line
+    after = _snapshot([full_disk, world["TMP"]])
+    assert {k: v for k, v in after.items() if k in before} == before
+    assert not _hidden(full_disk) and not _hidden(world["TMP"])
+
+
+# --- real processes: stdout, signals ----------------------------------------------------
+def _popen(args, cwd, **kw):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen(
+        [sys.executable, "-m", "mirage_cli", *map(str, args)],
+        cwd=cwd,
+        env=env,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kw,
+    )
+
+
+@pytest.mark.parametrize("how", ["closed", "full"])
+def test_stdout_failure_is_one_line(how, world):
+    tmp = world["TMP"]
+    args = _fill(REPORT, world)
+    if how == "closed":  # `mirage ... >&-`
+        p = _popen(args, tmp, stdout=subprocess.DEVNULL, preexec_fn=lambda: os.close(1))
+    else:
+        p = _popen(args, tmp, stdout=open("/dev/full", "w"))  # noqa: SIM115
+    _, err = p.communicate(timeout=120)
+    assert_contract(p.returncode, err, 1, "standard output")
+    if how == "closed":  # refused before any work
+        assert (tmp / "out.csv").read_text() == PROTECTED["out.csv"]
+    assert not _hidden(tmp)
+
+
+def _rows(path: Path) -> int:
+    return len(path.read_text().splitlines()) - 1
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_mid_track_keeps_finished_frames(sig, code, world):
+    tmp = world["TMP"]
+    args = ["track", world["V"], "--model", world["M"], "-o", "poses.csv", "--tum", "p.tum"]
+    p = _popen([*args, "--overlay", "ov.mp4"], tmp, stdout=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 120:  # some rows in the hidden partial file
+        parts = list(tmp.glob(".poses.csv.*.partial"))
+        if parts and _rows(parts[0]) >= 3:
+            break
+        assert p.poll() is None, p.stderr.read()
+        time.sleep(0.05)
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=120)
+    name = signal.Signals(sig).name
+    line = assert_contract(p.returncode, err, code, prefix=f"mirage: interrupted ({name}); ")
+    kept = int(re.search(r"kept (\d+) frames in poses.csv", line).group(1))
+    assert kept >= 3 and _rows(tmp / "poses.csv") == kept
+    assert (tmp / "p.tum").exists() and (tmp / "ov.mp4").stat().st_size > 0
+    assert not _hidden(tmp), _hidden(tmp)
+
+
+def _loaded(pid: int, lib: str) -> bool:
+    with contextlib.suppress(OSError):
+        return lib in Path(f"/proc/{pid}/maps").read_text()
+    return False
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_signal_during_start_up(sig, code, world):
+    """While OpenCV and numba load: one line, the signal's exit code, no traceback."""
+    tmp = world["TMP"]
+    p = _popen([*_fill(TRACK, world)], tmp, stdout=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    while not _loaded(p.pid, "cv2") and time.monotonic() - t0 < 60 and p.poll() is None:
+        time.sleep(0.005)
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=120)
+    name = signal.Signals(sig).name
+    assert_contract(p.returncode, err, code, prefix=f"mirage: interrupted ({name})")
+    assert (tmp / "out.csv").read_text() == PROTECTED["out.csv"]
+    assert not _hidden(tmp)
+
+
+def test_sigterm_while_writing_the_model_leaves_no_temp_file(world):
+    """SIGTERM while build-model writes its (multi-MB) model: the temporary file goes, the
+    previous model stays as it was, exit 143."""
+    tmp = world["TMP"]
+    args = [*_fill(BUILD, world), "--poses", world["KP"], "--spacing-deg", "40"]
+    p = _popen(args, tmp, stdout=subprocess.DEVNULL)
+    t0, seen = time.monotonic(), False
+    while p.poll() is None and time.monotonic() - t0 < 300:
+        if list(tmp.glob(".out.mirage.*")):  # the model is being written
+            seen = True
+            p.send_signal(signal.SIGTERM)
+            break
+        time.sleep(0.002)
+    _, err = p.communicate(timeout=120)
+    if not seen:  # too fast to catch: at least it finished cleanly
+        assert p.returncode == 0, err
+    else:
+        assert_contract(p.returncode, err, 143, prefix="mirage: interrupted (SIGTERM)")
+        assert (tmp / "out.mirage").read_text() == PROTECTED["out.mirage"]
+    assert not _hidden(tmp), _hidden(tmp)
