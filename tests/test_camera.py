@@ -311,7 +311,7 @@ def test_fisheye_with_zero_coefficients_is_not_a_pinhole():
 
 @pytest.mark.parametrize("method", ["mirage-s", "sqpnp", "epnp"])
 def test_solve_pose_recovers_pose_from_fisheye_pixels(method):
-    from mirage_cli.solver import solve_pose
+    from mirage_cli.solver import RefineOptions, solve_pose
 
     cam = Camera(
         [[420.5, 0, 639.8], [0, 421.2, 401.3], [0, 0, 1]], FISHEYE_D, 1280, 800, model="fisheye"
@@ -326,7 +326,9 @@ def test_solve_pose_recovers_pose_from_fisheye_pixels(method):
     assert est.pose.distance_to(truth) < 0.01 and est.pose.angle_to(truth) < 0.3
     # read as plumb_bob the same pixels give no such pose
     pin = Camera(cam.K, np.r_[FISHEYE_D, 0], 1280, 800)
-    bad = solve_pose(X, uv, pin, reference_pose=ref, method=method, max_rmse_px=2.0)
+    bad = solve_pose(
+        X, uv, pin, reference_pose=ref, method=method, refine=RefineOptions(max_rmse_px=2.0)
+    )
     assert not bad.success or bad.pose.distance_to(truth) > 0.05
 
 
