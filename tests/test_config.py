@@ -79,7 +79,7 @@ def test_help_shows_the_core_defaults(mirage):
     p = mirage("track", "--help")
     assert p.returncode == 0
     flat = " ".join(p.stdout.split())
-    assert "--redetect-every INTEGER RANGE Full feature" in flat
+    assert "--redetect-every INTEGER Full feature" in flat
     assert f"[default: {TrackSettings.redetect_every}; x>=1]" in flat
     assert f"[default: {TrackSettings.max_rmse_px}; x>0]" in flat
 
