@@ -207,3 +207,56 @@ def ratio_match(
         order = np.argsort(qi)
         qi, ti = qi[order], ti[order]
     return qi, ti
+
+
+def guided_match(
+    query_px: np.ndarray,
+    query_desc: np.ndarray,
+    cand_px: np.ndarray,
+    cand_desc: np.ndarray,
+    cand_point: np.ndarray,
+    radius_px: float,
+    ratio: float = 0.8,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Matches (qi, ci) of query features to candidates predicted within `radius_px`.
+
+    Candidates are model features at their predicted pixels; several may share a 3D point
+    (`cand_point`, one row per keyframe that saw it), so the ratio test compares the best
+    point with the best *other* point inside the radius (a point seen by four keyframes
+    no longer fails against itself), and a repeated texture elsewhere in the model never
+    competes because it is predicted far away. One query per point (the closest) survives.
+    Dense: one descriptor distance matrix (a BLAS product, as cheap as brute-force
+    matching) masked by the pixel distance.
+    """
+    empty = np.zeros(0, np.int64)
+    nq, nc = len(query_px), len(cand_px)
+    if nq == 0 or nc == 0:
+        return empty, empty
+    if query_desc.dtype == np.uint8:
+        d2 = cv2.batchDistance(query_desc, cand_desc, -1, None, cv2.NORM_HAMMING)[0]
+        d2 = d2.astype(np.float32) ** 2
+    else:
+        q, c = query_desc.astype(np.float32), cand_desc.astype(np.float32)
+        d2 = q @ c.T
+        d2 *= -2.0
+        d2 += (q * q).sum(1)[:, None]
+        d2 += (c * c).sum(1)[None, :]
+    if np.isfinite(radius_px):
+        qp, cp = np.asarray(query_px, np.float32), np.asarray(cand_px, np.float32)
+        dx, dy = np.subtract.outer(qp[:, 0], cp[:, 0]), np.subtract.outer(qp[:, 1], cp[:, 1])
+        d2[dx * dx + dy * dy > radius_px**2] = np.inf
+    col = np.argmin(d2, axis=1)
+    best = d2[np.arange(nq), col]
+    pt = np.asarray(cand_point)[col]
+    d2[np.asarray(cand_point)[None, :] == pt[:, None]] = np.inf  # other 3D points only
+    second = d2.min(axis=1)
+    keep = np.isfinite(best) & (best < ratio**2 * second)
+    qi, ci, pt, d = np.flatnonzero(keep), col[keep], pt[keep], best[keep]
+    # one query per 3D point: the closest descriptor wins
+    s = np.lexsort((d, pt))
+    qi, ci, pt = qi[s], ci[s], pt[s]
+    first = np.ones(len(qi), bool)
+    first[1:] = pt[1:] != pt[:-1]
+    qi, ci = qi[first], ci[first]
+    s = np.argsort(qi)
+    return qi[s], ci[s]

@@ -18,9 +18,9 @@ import cv2
 import numpy as np
 
 from .camera import Camera
-from .features import detect, make_detector, make_matcher, ratio_match
+from .features import detect, guided_match, make_detector
 from .frames import Frame
-from .model import LandmarkModel
+from .model import LandmarkModel, point_twins
 from .pose import Pose
 from .solver import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from .trajectory import FrameRecord, Status
@@ -43,24 +43,101 @@ class TrackSettings:
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
     max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
+    guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
+    second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
+    # first's inliers makes the frame ambiguous (lost)
+    distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
+    distinct_deg: float = 5.0  # different hypotheses
+    model_error_points: float = 50.0  # model/keypoint errors average like this many points
+    max_sigma_pos_m: float = 0.03  # a larger 1-sigma uncertainty is `uncertain`, not ok
+    max_sigma_rot_deg: float = 1.5
     seed: int = 0
 
 
+def unambiguous_pose(
+    X: np.ndarray,
+    uv: np.ndarray,
+    unique: np.ndarray,
+    camera: Camera,
+    reference: Pose | None,
+    s: TrackSettings,
+) -> PoseEstimate | Status:
+    """Pose from matches with no prior pose, or why not (LOST, AMBIGUOUS).
+
+    RANSAC runs on the `unique` matches only (points without a descriptor twin), so
+    repeated texture never decides the pose. Then the second-hypothesis test: RANSAC
+    again on the unique matches the first pose does not explain; a pose distinct from the
+    first (`distinct_m` / `distinct_deg`) with at least `second_hypothesis` of its
+    support means the evidence fits two places, and the answer is AMBIGUOUS. The
+    accepted pose is refined over every match that agrees with it, twins included.
+    """
+    if unique.sum() < s.min_inliers:
+        return Status.LOST
+    kw = dict(method=s.method, ransac=True, ransac_threshold_px=s.ransac_px, seed=s.seed)
+    Xu, uvu = X[unique], uv[unique]
+    first = solve_pose(Xu, uvu, camera, reference, **kw)
+    if not first.success:
+        return Status.LOST
+    n1 = int(first.inliers.sum())
+    rest = ~first.inliers
+    if rest.sum() >= max(s.min_inliers, 6):
+        second = solve_pose(Xu[rest], uvu[rest], camera, None, **kw)
+        if (
+            second.success
+            and second.inliers.sum() >= max(s.min_inliers, s.second_hypothesis * n1)
+            and (
+                second.pose.distance_to(first.pose) > s.distinct_m
+                or second.pose.angle_to(first.pose) > s.distinct_deg
+            )
+        ):
+            return Status.AMBIGUOUS
+    err = np.linalg.norm(camera.project(X, first.pose) - uv, axis=1)
+    inl = (err < s.ransac_px) & (first.pose.transform(X)[:, 2] > 0)
+    full = np.zeros(len(X), bool)
+    full[np.flatnonzero(unique)[first.inliers]] = True
+    first.inliers = full
+    if inl.sum() <= n1:
+        return first
+    final = solve_pose(
+        X[inl], uv[inl], camera, first.pose, method=s.method,
+        refine=RefineOptions(reject_px=s.ransac_px),
+    )  # fmt: skip
+    if not final.success:
+        return first
+    full = np.zeros(len(X), bool)
+    full[np.flatnonzero(inl)[final.inliers]] = True
+    final.inliers = full
+    return final
+
+
 class Tracker:
-    """Stateful per-frame tracker; feed frames in order with `process(gray)`."""
+    """Stateful per-frame tracker; feed frames in order with `process(gray)`.
+
+    Two kinds of detection. While tracking, model points of the keyframes near the
+    predicted pose (constant velocity) are projected and matched only within
+    `guided_radius_px` of their predicted pixel, so repeated texture elsewhere in the model
+    cannot compete. When lost, the frame is *relocalised*: global recognition, descriptor
+    matching, RANSAC on the matches to points without a descriptor twin (repeated texture
+    never votes alone), then a second-hypothesis test (RANSAC again without the first
+    pose's inliers); a distinct second pose with comparable support leaves the frame
+    lost. The final pose is refined over every match consistent with it.
+    """
 
     def __init__(self, model: LandmarkModel, camera: Camera, settings: TrackSettings):
         self.model, self.camera, self.s = model, camera, settings
         self.detector = make_detector(model.detector)
         self.prev_gray: np.ndarray | None = None
         self.prev_pose: Pose | None = None
+        self.velocity: Pose | None = None  # T_k @ T_{k-1}^-1 of the last two ok frames
         self.since_detect = 0
         self.lost_run = 0
         self.keyframe = -1
         self.track_px: np.ndarray | None = None  # (N,2) float32 inliers in prev frame
         self.track_X: np.ndarray | None = None  # (N,3) their model points
-        self.matcher = make_matcher(model.detector)
         self._kf_cache: dict[int, tuple] = {}
+        self.twins = point_twins(model)
+        err = model.reprojection_errors()
+        self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
     # ------------------------------------------------------------------------------------
     def process(self, gray: np.ndarray) -> FrameRecord:
@@ -76,14 +153,28 @@ class Tracker:
             res = self._detect(gray)
         self.prev_gray = gray
         if res.ok:
+            if self.prev_pose is not None and self.lost_run == 0:
+                self.velocity = res.pose @ self.prev_pose.inverse()
+            else:
+                self.velocity = None
             self.prev_pose = res.pose
             self.lost_run = 0
         else:
             self.lost_run += 1
             self.track_px = self.track_X = None
+            self.velocity = None
             if self.lost_run > 3:
                 self.prev_pose = None  # too long: recognise globally again
         return res
+
+    def _predicted(self) -> Pose | None:
+        if self.prev_pose is None:
+            return None
+        if self.velocity is None:
+            return self.prev_pose
+        p = self.velocity @ self.prev_pose
+        u, _, vt = np.linalg.svd(p.R)  # keep R orthonormal: products drift off it
+        return Pose(u @ vt, p.t)
 
     # ------------------------------------------------------------------------------------
     def _flow(self, gray: np.ndarray) -> FrameRecord | None:
@@ -130,32 +221,62 @@ class Tracker:
         kps, desc = detect(gray, self.detector)
         if desc is None or len(kps) < self.s.min_inliers:
             return FrameRecord(Status.LOST, mode="detect")
-        if self.prev_pose is not None:
-            cands = list(self.model.nearest_keyframes(self.prev_pose, self.s.local_keyframes))
-        else:
-            cands = [i for i, _ in self.model.recognize(desc, top_k=self.s.global_keyframes)]
-        if not cands:
-            return FrameRecord(Status.LOST, mode="detect")
-        best = FrameRecord(Status.LOST, mode="detect")
-        # one matching pass against the union of candidate keyframes' 3D-linked features
-        X_all, d_all, kf_of = self._candidates(cands)
-        qi, ti = ratio_match(desc, d_all, self.s.ratio, self.matcher)
+        pred = self._predicted()
+        if pred is not None:
+            res = self._guided(kps, desc, pred)
+            if res.ok:
+                return res
+        return self._relocalise(kps, desc)  # also when the prediction was too far off
+
+    def _guided(self, kps, desc, pred: Pose) -> FrameRecord:
+        """Tracking: match near the predicted projections of the nearby keyframes' points."""
+        cands = list(self.model.nearest_keyframes(pred, self.s.local_keyframes))
+        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        Xc = pred.transform(X_all)
+        front = Xc[:, 2] > 1e-3
+        uvp = self.camera.project(X_all[front], pred)
+        radius = self.s.guided_radius_px * (1 + self.lost_run)
+        qi, ci = guided_match(kps, desc, uvp, d_all[front], pid_all[front], radius, self.s.ratio)
+        ci = np.flatnonzero(front)[ci]
         if len(qi) < self.s.min_inliers:
-            best.matches = len(qi)
-            return best
-        uv, X = kps[qi].astype(np.float64), X_all[ti]
-        votes = np.bincount(kf_of[ti], minlength=len(self.model.keyframes))
-        kf = int(np.argmax(votes))
-        ref = self.prev_pose if self.prev_pose is not None else self.model.keyframes[kf].pose
+            return FrameRecord(Status.LOST, matches=len(qi), mode="detect")
+        uv, X = kps[qi].astype(np.float64), X_all[ci]
+        kf = int(np.argmax(np.bincount(kf_of[ci], minlength=len(self.model.keyframes))))
         est = solve_pose(
             X,
             uv,
             self.camera,
-            reference_pose=ref,
+            reference_pose=pred,
             method=self.s.method,
             ransac=RansacOptions(threshold_px=self.s.ransac_px, seed=self.s.seed),
         )
-        res = self._gate(est, len(uv), "detect", check_jump=False)
+        res = self._gate(est, len(uv), "detect", check_jump=True)
+        return self._accept(res, est, uv, X, kf)
+
+    def _relocalise(self, kps, desc) -> FrameRecord:
+        """Lost: recognise, match, and accept a pose only when the evidence is unambiguous."""
+        cands = [i for i, _ in self.model.recognize(desc, top_k=self.s.global_keyframes)]
+        if not cands:
+            return FrameRecord(Status.LOST, mode="relocalise")
+        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        # descriptor matching whose ratio test compares distinct 3D points (the same point
+        # seen by two candidate keyframes is not a rival); no position prior: radius inf
+        anywhere = np.zeros((len(X_all), 2))
+        qi, ti = guided_match(kps, desc, anywhere, d_all, pid_all, np.inf, self.s.ratio)
+        uv, X = kps[qi].astype(np.float64), X_all[ti]
+        unique = ~self.twins[pid_all[ti]]  # matches to repeated texture do not vote
+        lost = FrameRecord(Status.LOST, matches=len(qi), mode="relocalise")
+        if unique.sum() < self.s.min_inliers:
+            return lost
+        kf = int(np.argmax(np.bincount(kf_of[ti[unique]], minlength=len(self.model.keyframes))))
+        est = unambiguous_pose(X, uv, unique, self.camera, self.model.keyframes[kf].pose, self.s)
+        if isinstance(est, Status):
+            lost.status = est
+            return lost
+        res = self._gate(est, len(uv), "relocalise", check_jump=False)
+        return self._accept(res, est, uv, X, kf)
+
+    def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int) -> FrameRecord:
         res.keyframe = self.model.keyframes[kf].name
         if res.ok:
             self.keyframe = kf
@@ -169,15 +290,33 @@ class Tracker:
         for k in cands:
             if k not in self._kf_cache:
                 kp, d, pid = self.model.keyframes[k].linked()
-                self._kf_cache[k] = (self.model.points[pid], d, np.full(len(pid), k, np.int32))
+                self._kf_cache[k] = (
+                    self.model.points[pid],
+                    d,
+                    np.full(len(pid), k, np.int32),
+                    pid.astype(np.int64),
+                )
             parts.append(self._kf_cache[k])
-        X = np.concatenate([p[0] for p in parts])
-        d = np.concatenate([p[1] for p in parts])
-        kf = np.concatenate([p[2] for p in parts])
-        return X, d, kf
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+
+    def _sigmas(self, est: PoseEstimate, n: int) -> tuple[float, float]:
+        """1-sigma position (m) and rotation (deg) including the model's own error.
+
+        The solver's covariance scales with the pixel residuals of this frame, which
+        average out over n points; errors of the model points and of keypoint localisation
+        on a face seen at an angle are shared by neighbouring points and do not, so they
+        are added as the model's reprojection RMS over `model_error_points` independent
+        points: Cov = (J^T J)^-1 (s_res^2 + s_model^2 n / n_model).
+        """
+        s2 = est.sigma_px**2
+        if not s2 > 0:
+            return est.sigma_pos_m, est.sigma_rot_deg
+        k = np.sqrt(1.0 + self.model_rms_px**2 * n / (self.s.model_error_points * s2))
+        return est.sigma_pos_m * k, est.sigma_rot_deg * k
 
     def _gate(self, est: PoseEstimate, n: int, mode: str, check_jump: bool) -> FrameRecord:
-        """ok only with enough consistent inliers, a small residual and a plausible motion."""
+        """ok only with enough consistent inliers, a small residual, a plausible motion and
+        an uncertainty small enough to trust (else `uncertain`)."""
         ninl = int(est.inliers.sum()) if est.success else 0
         res = FrameRecord(
             Status.LOST,
@@ -189,7 +328,7 @@ class Tracker:
         )
         if not est.success:
             return res
-        res.sigma_pos_m, res.sigma_rot_deg = est.sigma_pos_m, est.sigma_rot_deg
+        res.sigma_pos_m, res.sigma_rot_deg = self._sigmas(est, ninl)
         if ninl < self.s.min_inliers or ninl < self.s.min_inlier_ratio * n:
             return res
         if not est.rmse_px <= self.s.max_rmse_px:
@@ -204,6 +343,12 @@ class Tracker:
                 or est.pose.angle_to(self.prev_pose) > self.s.max_jump_deg
             )
         ):
+            return res
+        if not (
+            res.sigma_pos_m <= self.s.max_sigma_pos_m
+            and res.sigma_rot_deg <= self.s.max_sigma_rot_deg
+        ):
+            res.status = Status.UNCERTAIN
             return res
         res.status, res.pose = Status.OK, est.pose
         if mode == "flow" and self.keyframe >= 0:

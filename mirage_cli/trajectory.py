@@ -40,6 +40,8 @@ class Status(str, Enum):
 
     OK = "ok"  # a trusted pose
     LOST = "lost"  # not enough consistent evidence for a pose
+    AMBIGUOUS = "ambiguous"  # relocalisation: two distinct poses explain the frame alike
+    UNCERTAIN = "uncertain"  # a pose, but its uncertainty is too large to trust
     DECODE_ERROR = "decode_error"  # the frame could not be decoded
     SIZE_MISMATCH = "size_mismatch"  # a frame of another size than the sequence's camera
 
@@ -65,7 +67,7 @@ class FrameRecord:
     sigma_pos_m: float = float("nan")
     sigma_rot_deg: float = float("nan")
     ms: float = float("nan")  # processing time of the frame
-    mode: str = ""  # detect | flow
+    mode: str = ""  # detect | flow | relocalise
     inlier_px: np.ndarray | None = field(default=None, repr=False)  # for overlays
     image: np.ndarray | None = field(default=None, repr=False)  # the frame, when kept
     extra: dict = field(default_factory=dict)  # other columns by name (landmark_visible)
