@@ -73,7 +73,7 @@ def unambiguous_pose(
     """
     if unique.sum() < s.min_inliers:
         return Status.LOST
-    kw = dict(method=s.method, ransac=True, ransac_threshold_px=s.ransac_px, seed=s.seed)
+    kw = dict(method=s.method, ransac=RansacOptions(threshold_px=s.ransac_px, seed=s.seed))
     Xu, uvu = X[unique], uv[unique]
     first = solve_pose(Xu, uvu, camera, reference, **kw)
     if not first.success:
