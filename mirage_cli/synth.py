@@ -41,8 +41,9 @@ def _shade(normal) -> float:
     return float(0.55 + 0.45 * max(0.0, float(np.dot(normal, LIGHT))))
 
 
-def _box_faces(name, bounds, seed, markers, marker_normals):
-    """Four sides and the top of a box, each with its own texture and 3 corner markers."""
+def _box_faces(name, bounds, seed, markers, marker_normals, lookalike=False):
+    """Four sides and the top of a box, each with its own texture and 3 corner markers
+    (with `lookalike` the -x / -y sides copy the +x / +y sides: a 180-degree twin)."""
     (x0, x1), (y0, y1), (z0, z1) = bounds
     c = np.array([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2])
     half = np.array([(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2])
@@ -65,7 +66,8 @@ def _box_faces(name, bounds, seed, markers, marker_normals):
         wv = 2 * float(abs(ev) @ half)
         origin = c + n * half[axis] - eu * wu / 2 - ev * wv / 2
         fname = f"{name}{label}"
-        rng = stable_rng(seed, fname)
+        twin = {"-x": "+x", "-y": "+y"}.get(label, label) if lookalike else label
+        rng = stable_rng(seed, f"{name}{twin}")
         tw, th = int(round(wu / TEXEL_M)), int(round(wv / TEXEL_M))
         tex = random_texture(rng, tw, th, density=1.3)
         for _ in range(3):  # X-junction markers: exact, sub-pixel-detectable 3D points
@@ -106,19 +108,33 @@ class Disk(Rect):
         return t
 
 
-def landmark_scene(seed: int = 0) -> Scene:
-    """The landmark at the origin on a textured ground inside a textured round room."""
+def landmark_scene(
+    seed: int = 0, floor_tile_m: float | None = None, lookalike: bool = False
+) -> Scene:
+    """The landmark at the origin on a textured ground inside a textured round room.
+
+    Stress options (off by default, so the default scene is unchanged): `floor_tile_m`
+    makes the ground one texture tile repeated with that period (every floor feature has
+    exact twins one period apart); `lookalike` gives opposite sides of the landmark the
+    same texture (box sides and the two halves of the cylinder)."""
     surfaces, markers, normals = [], [], []
     for name, bounds in BOXES.items():
-        surfaces += _box_faces(name, bounds, seed, markers, normals)
+        surfaces += _box_faces(name, bounds, seed, markers, normals, lookalike)
     cyl = CYLINDER
     circ = 2 * np.pi * cyl["radius"]
     h = cyl["z"][1] - cyl["z"][0]
-    tex = random_texture(
-        stable_rng(seed, "cylinder"), int(circ / TEXEL_M), int(h / TEXEL_M), density=1.3
-    )
+    if lookalike:  # two identical halves: texel chosen so half the circumference is whole
+        half = int(round(circ / 2 / TEXEL_M))
+        texel = circ / 2 / half
+        tile = random_texture(stable_rng(seed, "cylinder"), half, int(h / texel), density=1.3)
+        tex, cyl_texel = np.concatenate([tile, tile], axis=1), texel
+    else:
+        tex = random_texture(
+            stable_rng(seed, "cylinder"), int(circ / TEXEL_M), int(h / TEXEL_M), density=1.3
+        )
+        cyl_texel = TEXEL_M
     surfaces.append(
-        Cylinder("cylinder", cyl["center"], cyl["radius"], *cyl["z"], TEXEL_M, tex, light=LIGHT)
+        Cylinder("cylinder", cyl["center"], cyl["radius"], *cyl["z"], cyl_texel, tex, light=LIGHT)
     )
     d = int(2 * cyl["radius"] / TEXEL_M)
     surfaces.append(
@@ -132,20 +148,7 @@ def landmark_scene(seed: int = 0) -> Scene:
             _shade(np.array([0, 0, 1])),
         )
     )
-    g = 12.0  # ground: 12 m square, 5 mm texels
-    ground_tex = random_texture(stable_rng(seed, "ground"), 2400, 2400, density=0.8, scale=3)
-    surfaces.append(
-        Rect(
-            "ground",
-            (-g / 2, g / 2, 0.0),
-            (1.0, 0, 0),
-            (0, -1.0, 0),
-            (g, g),
-            g / 2400,
-            ground_tex,
-            0.85,
-        )
-    )
+    surfaces.append(_ground(seed) if floor_tile_m is None else _tiled_ground(seed, floor_tile_m))
     wall_r, wall_h, wall_texel = 5.5, 3.0, 0.008
     wall_tex = random_texture(
         stable_rng(seed, "wall"),
@@ -160,6 +163,78 @@ def landmark_scene(seed: int = 0) -> Scene:
     for s in surfaces[:-2]:  # a bounding box lets the renderer skip rays that miss the landmark
         s.bounds = LANDMARK_BOUNDS
     return Scene(surfaces, markers=np.array(markers), marker_normals=np.array(normals))
+
+
+def _ground(seed: int) -> Rect:
+    """The default ground: a 12 m square of non-repeating texture, 5 mm texels."""
+    g = 12.0
+    ground_tex = random_texture(stable_rng(seed, "ground"), 2400, 2400, density=0.8, scale=3)
+    return Rect(
+        "ground",
+        (-g / 2, g / 2, 0.0),
+        (1.0, 0, 0),
+        (0, -1.0, 0),
+        (g, g),
+        g / 2400,
+        ground_tex,
+        0.85,
+    )
+
+
+def _tiled_ground(seed: int, period_m: float) -> Rect:
+    """A ground of one texture tile repeated every `period_m` in x and y (a square of at
+    least 12 m centred on the origin, a whole number of tiles wide). The tile is a power of
+    two texels wide (texels near 5 mm), so every mip level repeats exactly too: renders
+    shifted by one period match."""
+    if not period_m > 0:
+        raise ValueError(f"floor tile period must be > 0, got {period_m}")
+    n = int(2 ** np.clip(np.round(np.log2(period_m / 0.005)), 3, 10))
+    tiles = int(np.ceil(12.0 / period_m))
+    g = tiles * period_m
+    texel = period_m / n
+    tile = random_texture(
+        stable_rng(seed, "ground-tile"), n, n, density=0.8, scale=3 * 0.005 / texel
+    )
+    tex = np.tile(tile, (tiles, tiles, 1))
+    return Rect(
+        "ground",
+        (-g / 2, g / 2, 0.0),
+        (1.0, 0, 0),
+        (0, -1.0, 0),
+        (g, g),
+        g / tex.shape[1],
+        tex,
+        0.85,
+    )
+
+
+# An occluder for `--pole`: a vertical textured cylinder between the orbit and the landmark,
+# passed in front of the landmark when the camera's azimuth is near `azimuth_deg`.
+POLE = {"azimuth_deg": 60.0, "distance_m": 0.95, "radius": 0.04, "z": (0.0, 2.5)}
+
+
+def pole(seed: int = 0, spec: dict = POLE) -> Cylinder:
+    a = np.radians(spec["azimuth_deg"])
+    c = (spec["distance_m"] * np.cos(a), spec["distance_m"] * np.sin(a))
+    texel = 0.002
+    tex = random_texture(
+        stable_rng(seed, "pole"),
+        int(2 * np.pi * spec["radius"] / texel),
+        int((spec["z"][1] - spec["z"][0]) / texel),
+        density=1.0,
+    )
+    return Cylinder("pole", c, spec["radius"], *spec["z"], texel, tex, light=LIGHT)
+
+
+def add_occluder(scene: Scene, surface) -> Scene:
+    """The scene with one more surface in front of the landmark (markers unchanged)."""
+    return Scene(
+        list(scene.surfaces) + [surface],
+        scene.sky_top,
+        scene.sky_horizon,
+        scene.markers,
+        scene.marker_normals,
+    )
 
 
 def landmark_surface_samples(step: float = 0.02) -> np.ndarray:
@@ -200,8 +275,10 @@ def landmark_surface_distance(points) -> np.ndarray:
     return np.min(d, axis=0)
 
 
-def landmark_visibility(camera: Camera, pose: Pose, samples: np.ndarray) -> float:
-    """Share of landmark surface samples in front of the camera that project into the image."""
+def landmark_visibility(camera: Camera, pose: Pose, samples: np.ndarray, occluders=()) -> float:
+    """Share of landmark surface samples in front of the camera that project into the image
+    (and, given `occluders`, are not hidden behind one of them; the landmark's own faces do
+    not count as occluders, so a fully visible landmark scores the same either way)."""
     Xc = pose.transform(samples)
     front = Xc[:, 2] > 0.05
     if not front.any():
@@ -213,6 +290,15 @@ def landmark_visibility(camera: Camera, pose: Pose, samples: np.ndarray) -> floa
         & (uv[:, 1] >= 0)
         & (uv[:, 1] <= camera.height - 1)
     )
+    if len(occluders):
+        P = samples[front][inside]
+        d = P - pose.center
+        dist = np.linalg.norm(d, axis=1)
+        D = d / dist[:, None]
+        hidden = np.zeros(len(P), bool)
+        for s in occluders:
+            hidden |= s.intersect(pose.center, D) < dist
+        return float((~hidden).sum()) / len(samples)
     return float(inside.sum()) / len(samples)
 
 
@@ -336,6 +422,13 @@ class OrbitPath:
     start_deg: float = -20.0
     look_away_s: tuple[float, float] = (14.04, 16.02)  # = synth_cli._look_away(18)
     look_away_deg: float = 100.0
+
+    def exposure_poses(self, t: float, n: int, exposure_s: float) -> list[Pose]:
+        """The `n` sub-frame poses of a motion-blurred frame at time `t`: spread evenly over
+        `exposure_s` and symmetric about `t`, so the frame's true pose is the blur's centre."""
+        if n <= 1:
+            return [self.pose(t)]
+        return [self.pose(t + exposure_s * (k / max(n - 1, 1) - 0.5)) for k in range(n)]
 
     def pose(self, t: float) -> Pose:
         T = self.duration_s

@@ -129,7 +129,14 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     type=BoundedInt(min=1),
     default=1,
     show_default=True,
-    help="Sub-frame renders averaged over half a frame interval (1 = off).",
+    help="Sub-frame renders averaged over the exposure, centred on the frame's time (1 = off).",
+)
+@click.option(
+    "--exposure",
+    type=click.FloatRange(min=0, max=1, min_open=True),
+    default=0.5,
+    show_default=True,
+    help="Shutter time as a share of the frame interval (the span --motion-blur averages).",
 )
 @click.option(
     "--jpeg-quality",
@@ -145,6 +152,38 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     is_flag=True,
     help="Lay a ChArUco board on the ground around the landmark (for build-model --board); "
     "writes OUTDIR/board.yaml. Off by default: the default output does not change.",
+)
+@click.option(
+    "--floor-tiles",
+    type=click.FloatRange(min=0.05),
+    metavar="PERIOD_M",
+    help="Stress: the ground is one texture tile repeated every PERIOD_M metres (floor "
+    "features have exact twins one period apart).",
+)
+@click.option(
+    "--lookalike",
+    is_flag=True,
+    help="Stress: opposite sides of the landmark carry the same texture.",
+)
+@click.option(
+    "--pole",
+    is_flag=True,
+    help="Stress: a textured pole (8 cm wide) stands between the orbit and the landmark at "
+    "azimuth 60 deg, 0.95 m from it, and passes in front of the landmark during the orbit. "
+    "In the orbit video only (not in the keyframes); landmark_visible counts it.",
+)
+@click.option(
+    "--video-radius",
+    type=click.FloatRange(min=0.8),
+    default=1.6,
+    show_default=True,
+    help="Orbit video circle radius (m); the keyframes keep --radius.",
+)
+@click.option(
+    "--look-away",
+    metavar="SECONDS|START,END",
+    help="The look-away stretch: its length (starting at 78%% of the video; 0 = none) or its "
+    "start and end times in seconds. Default: min(2.2 s, 11%% of the video) at 78%%.",
 )
 def synth_cmd(
     outdir,
@@ -166,6 +205,12 @@ def synth_cmd(
     jpeg_quality,
     jobs,
     ground_board=False,
+    exposure=0.5,
+    floor_tiles=None,
+    lookalike=False,
+    pole=False,
+    video_radius=1.6,
+    look_away=None,
 ):
     """Render a synthetic data set with exact ground truth into OUTDIR.
 
@@ -213,7 +258,7 @@ def synth_cmd(
             jobs,
         )
     if "keyframes" in parts or "orbit" in parts:
-        scene = synth.landmark_scene(seed)
+        scene = synth.landmark_scene(seed, floor_tile_m=floor_tiles, lookalike=lookalike)
         if ground_board:
             scene = synth.add_ground_board(scene)
             with atomic_write(out / "board.yaml") as f:
@@ -233,7 +278,12 @@ def synth_cmd(
                 jobs,
             )
         if "orbit" in parts:
-            _orbit(out, renderer, duration, fps, seed, noise, motion_blur, jobs)
+            occluders = [synth.pole(seed)] if pole else []
+            if occluders:
+                renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam)
+            away = _parse_look_away(look_away, duration)
+            path = synth.OrbitPath(duration_s=duration, radius_m=video_radius, look_away_s=away)
+            _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders)
     ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
 
 
@@ -275,21 +325,17 @@ def _keyframes(folder, renderer, step, radius, heights, seed, noise, quality, jo
     ui.echo(f"synth: {len(views)} keyframes every {step:g} deg in {folder}")
 
 
-def _orbit(out: Path, renderer, duration, fps, seed, noise, blur, jobs):
+def _orbit(out: Path, renderer, path, fps, seed, noise, blur, exposure, jobs, occluders):
     cam = renderer.camera
-    path = synth.OrbitPath(duration_s=duration, look_away_s=_look_away(duration))
-    n = int(round(duration * fps))
+    n = int(round(path.duration_s * fps))
     times = np.arange(n) / fps
     poses = [path.pose(t) for t in times]
-    exposure = 0.5 / fps
     pose_lists = [
-        [path.pose(t + exposure * (k / max(blur - 1, 1) - 0.5)) for k in range(blur)]
-        if blur > 1
-        else [p]
+        path.exposure_poses(t, blur, exposure / fps) if blur > 1 else [p]
         for t, p in zip(times, poses, strict=True)
     ]
     samples = synth.landmark_surface_samples()
-    vis = [synth.landmark_visibility(cam, p, samples) for p in poses]
+    vis = [synth.landmark_visibility(cam, p, samples, occluders) for p in poses]
     with atomic_path(out / "orbit.mp4", verify=lambda p: video_frames_written(p) == n) as tmp:
         writer = cv2.VideoWriter(
             str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (cam.width, cam.height)
@@ -317,9 +363,28 @@ def _orbit(out: Path, renderer, duration, fps, seed, noise, blur, jobs):
     )
 
 
-def _look_away(duration: float) -> tuple[float, float]:
+def _parse_look_away(text: str | None, duration: float) -> tuple[float, float]:
+    """`--look-away`: None, a length in seconds, or START,END in seconds."""
+    if text is None:
+        return _look_away(duration)
+    try:
+        vals = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) == 1 and vals[0] >= 0:
+        return _look_away(duration, vals[0])
+    if len(vals) == 2 and 0 <= vals[0] <= vals[1]:
+        return vals[0], vals[1]
+    raise click.BadParameter(
+        f"{text!r} is not SECONDS or START,END (seconds, START <= END)",
+        param_hint="'--look-away'",
+    )
+
+
+def _look_away(duration: float, length: float | None = None) -> tuple[float, float]:
     """The look-away stretch: 2.2 s starting at 78% of the video (scaled for short videos),
     where the path's last part repeats its start, so every azimuth is seen in view."""
-    length = min(2.2, 0.11 * duration)
+    if length is None:
+        length = min(2.2, 0.11 * duration)
     start = 0.78 * duration
     return start, start + length

@@ -160,3 +160,151 @@ def test_orbit_video_and_truth():
         assert (
             uv[:, 0].max() < 0 or uv[:, 0].min() > 639 or uv[:, 1].max() < 0 or uv[:, 1].min() > 479
         )
+
+
+# --- stress-scene options (off by default) ---------------------------------------------
+def _small_camera():
+    return default_camera().scaled(160, 120)
+
+
+def test_default_scene_unchanged_keyframe_bytes(scene):
+    """The stress options left the default scene alone: keyframe 0 renders to the committed
+    JPEG byte for byte (same pose, noise seed and quality as `mirage synth`)."""
+    from mirage_cli.render import stable_rng
+    from mirage_cli.synth import encode_jpeg, keyframe_poses
+
+    name, pose = keyframe_poses()[0]
+    img = Renderer(scene, default_camera()).render(pose, 1.5, stable_rng(0, "keyframes-noise-0"))
+    assert encode_jpeg(img, 95) == (SAMPLE / "keyframes" / f"{name}.jpg").read_bytes()
+
+
+def test_default_orbit_truth_unchanged():
+    """The committed truth CSV is what the default orbit path and visibility give."""
+    from mirage_cli.posecsv import row_pose
+    from mirage_cli.synth import landmark_visibility
+    from mirage_cli.synth_cli import _look_away
+
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    path = OrbitPath(duration_s=18.0, look_away_s=_look_away(18.0))
+    cam, samples = default_camera(), landmark_surface_samples()
+    for i in range(0, len(truth), 37):
+        t = i / 30.0
+        p = path.pose(t)
+        assert row_pose(truth.iloc[i]).distance_to(p) < 1e-6
+        assert abs(truth["landmark_visible"].iloc[i] - landmark_visibility(cam, p, samples)) < 1e-4
+
+
+def test_floor_tiles_repeat_with_the_period():
+    """Two views of the floor one period apart (in x, then in y) render the same image;
+    on the default ground they do not."""
+    cam = _small_camera()
+    pose = look_at([2.0, 0.3, 1.2], [2.3, 0.35, 0.0])
+    from mirage_cli.pose import Pose
+
+    for tiles, same in ((0.75, True), (None, False)):
+        r = Renderer(landmark_scene(0, floor_tile_m=tiles), cam)
+        a = r.render(pose).astype(int)
+        for shift in ([0.75, 0, 0], [0, -0.75, 0]):
+            b = r.render(Pose.from_center(pose.R_wc, pose.center + shift)).astype(int)
+            diff = np.abs(a - b)
+            if same:
+                assert diff.max() <= 1 and diff.mean() < 0.01
+            else:
+                assert diff.mean() > 10
+
+
+def test_lookalike_opposite_sides():
+    """Front views of the base box's +x and -x faces (and +y / -y) show the same texture
+    (up to the faces' shading) with --lookalike, different textures without."""
+    cam = _small_camera()
+    for look, expect in ((True, 0.99), (False, None)):
+        r = Renderer(landmark_scene(0, lookalike=look), cam)
+        for axis in (0, 1):
+            crops = []
+            for sign in (1, -1):
+                face = np.zeros(3)
+                face[axis] = sign * (0.30 if axis == 0 else 0.21)
+                face[2] = 0.17
+                normal = np.sign(face) * (np.arange(3) == axis)
+                img = r.render(look_at(face + 0.7 * normal, face)).astype(float)
+                crops.append(cv2.cvtColor(img.astype(np.uint8), cv2.COLOR_BGR2GRAY)[40:80, 60:100])
+            a, b = (c.ravel() - c.mean() for c in crops)
+            ncc = float(a @ b / np.linalg.norm(a) / np.linalg.norm(b))
+            if expect:
+                assert ncc > expect, (axis, ncc)
+            else:
+                assert ncc < 0.5, (axis, ncc)
+
+
+def test_pole_hides_the_landmark_where_expected():
+    """With the pole, the frames where the camera is behind it (azimuth ~60 deg) lose
+    landmark pixels and visibility; from the other side it hides nothing."""
+    from mirage_cli.synth import POLE, add_occluder, landmark_visibility, pole
+
+    cam = _small_camera()
+    base = landmark_scene(0)
+    occ = pole(0)
+    r0, r1 = Renderer(base, cam), Renderer(add_occluder(base, occ), cam)
+    samples = landmark_surface_samples()
+    for az, hidden in ((POLE["azimuth_deg"], True), (POLE["azimuth_deg"] + 180, False)):
+        a = np.radians(az)
+        pose = look_at([1.6 * np.cos(a), 1.6 * np.sin(a), 0.55], [0, 0, 0.28])
+        v0 = landmark_visibility(cam, pose, samples)
+        v1 = landmark_visibility(cam, pose, samples, [occ])
+        changed = np.abs(r0.render(pose).astype(int) - r1.render(pose).astype(int)).max(axis=2)
+        if hidden:
+            assert 0.3 * v0 < v1 < 0.95 * v0  # partly hidden, not all
+            cols = np.flatnonzero((changed > 10).any(axis=0))
+            assert 60 < cols.mean() < 100  # the pole stands in the middle of the view
+            assert 4 < len(cols) < 40
+        else:  # the pole is behind the landmark: seen, but hides none of it
+            assert v1 == v0
+
+
+def test_motion_blur_is_centred_on_the_true_pose():
+    """Sub-frame poses are symmetric in time about the frame: the mean projection of the
+    landmark over the exposure lands on its projection from the true pose."""
+    path, cam = OrbitPath(), default_camera()
+    pts = landmark_surface_samples(0.1)
+    for t in (1.0, 7.3):
+        subs = path.exposure_poses(t, 4, 0.5 / 30)
+        assert len(subs) == 4
+        mean_uv = np.mean([cam.project(pts, p) for p in subs], axis=0)
+        spread = np.linalg.norm(cam.project(pts, subs[0]) - cam.project(pts, subs[-1]), axis=1)
+        err = np.linalg.norm(mean_uv - cam.project(pts, path.pose(t)), axis=1)
+        assert spread.mean() > 0.5 and err.max() < 0.02 * spread.max() + 1e-3
+    assert path.exposure_poses(2.0, 1, 0.1)[0].distance_to(path.pose(2.0)) == 0
+
+
+def test_stress_options_cli(mirage, tmp_path):
+    """The options reach the files: far video radius in the truth and the desired path,
+    the keyframes stay at --radius, no look-away, the scene options change the images."""
+    common = ["--width", "64", "--duration", "2", "--fps", "5", "--jobs", "1", "--noise", "0"]
+    common += ["--keyframe-step", "120", "--only", "keyframes,orbit"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert mirage("synth", a, *common).returncode == 0
+    p = mirage(
+        "synth", b, *common, "--video-radius", "4", "--pole", "--floor-tiles", "0.75",
+        "--lookalike", "--look-away", "0", "--motion-blur", "2", "--exposure", "1",
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    ta, tb = read_pose_csv(a / "orbit_truth.csv"), read_pose_csv(b / "orbit_truth.csv")
+    ra = np.hypot(ta["x_m"], ta["y_m"])
+    rb = np.hypot(tb["x_m"], tb["y_m"])
+    assert 1.3 < ra.min() and ra.max() < 1.9
+    assert 3.7 < rb.min() and rb.max() < 4.3
+    assert (tb["landmark_visible"] > 0).all()
+    import yaml
+
+    assert yaml.safe_load((b / "desired_path.yaml").read_text())["radius_m"] == 4.0
+    c = tmp_path / "c"
+    common[3] = "4"  # --duration 4: the landmark leaves the view between 1.0 and 3.0 s
+    p = mirage("synth", c, *common, "--only", "orbit", "--look-away", "1.0,3.0")
+    assert p.returncode == 0, p.stderr
+    vis = read_pose_csv(c / "orbit_truth.csv")["landmark_visible"].to_numpy()
+    t = np.arange(len(vis)) / 5
+    assert (vis[(t > 1.6) & (t < 2.4)] == 0).all() and (vis[(t < 0.8) | (t > 3.2)] > 0).all()
+    assert_one_line_error(mirage("synth", c, "--look-away", "3,1"), 2, "--look-away")
+    kb = read_pose_csv(b / "keyframes" / "poses.csv")
+    assert np.allclose(np.hypot(kb["x_m"], kb["y_m"]), 1.4)
+    assert (a / "keyframes/kf_000.jpg").read_bytes() != (b / "keyframes/kf_000.jpg").read_bytes()
