@@ -175,7 +175,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 @click.option(
     "--video-radius",
     type=click.FloatRange(min=0.8),
-    default=1.6,
+    default=default_of(synth.OrbitPath, "radius_m"),
     show_default=True,
     help="Orbit video circle radius (m); the keyframes keep --radius.",
 )
@@ -227,6 +227,7 @@ def synth_cmd(
             f"unknown part(s) {', '.join(bad) or '(none)'}; choose from {', '.join(PARTS)}",
             param_hint="'--only'",
         )
+    away_s = _parse_look_away(look_away, duration)  # before any rendering
     try:
         cols, rows = parse_board(None, None, board)
     except click.BadParameter as e:
@@ -281,8 +282,7 @@ def synth_cmd(
             occluders = [synth.pole(seed)] if pole else []
             if occluders:
                 renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam)
-            away = _parse_look_away(look_away, duration)
-            path = synth.OrbitPath(duration_s=duration, radius_m=video_radius, look_away_s=away)
+            path = synth.OrbitPath(duration_s=duration, radius_m=video_radius, look_away_s=away_s)
             _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders)
     ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
 
