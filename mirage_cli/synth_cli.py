@@ -180,6 +180,13 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     help="Orbit video circle radius (m); the keyframes keep --radius.",
 )
 @click.option(
+    "--turns",
+    type=click.FloatRange(min=0, min_open=True),
+    default=default_of(synth.OrbitPath, "turns"),
+    show_default=True,
+    help="Orbit video: turns around the landmark over --duration (sets the speed).",
+)
+@click.option(
     "--look-away",
     metavar="SECONDS|START,END",
     help="The look-away stretch: its length (starting at 78%% of the video; 0 = none) or its "
@@ -211,6 +218,7 @@ def synth_cmd(
     pole=False,
     video_radius=1.6,
     look_away=None,
+    turns=1.3,
 ):
     """Render a synthetic data set with exact ground truth into OUTDIR.
 
@@ -282,7 +290,9 @@ def synth_cmd(
             occluders = [synth.pole(seed)] if pole else []
             if occluders:
                 renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam)
-            path = synth.OrbitPath(duration_s=duration, radius_m=video_radius, look_away_s=away_s)
+            path = synth.OrbitPath(
+                duration_s=duration, radius_m=video_radius, turns=turns, look_away_s=away_s
+            )
             _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders)
     ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
 
