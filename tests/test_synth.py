@@ -285,7 +285,7 @@ def test_stress_options_cli(mirage, tmp_path):
     assert mirage("synth", a, *common).returncode == 0
     p = mirage(
         "synth", b, *common, "--video-radius", "4", "--pole", "--floor-tiles", "0.75",
-        "--lookalike", "--look-away", "0", "--motion-blur", "2", "--exposure", "1",
+        "--lookalike", "--look-away", "0", "--motion-blur", "2", "--exposure", "1", "--aa", "1",
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
     ta, tb = read_pose_csv(a / "orbit_truth.csv"), read_pose_csv(b / "orbit_truth.csv")
