@@ -18,7 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from mirage_cli.calibrate import Board, CalibOptions, calibrate, detect_images
+from mirage_cli.boards import Board
+from mirage_cli.calibrate import CalibOptions, calibrate, detect_images
 from mirage_cli.camera import Camera
 
 ROOT = Path(__file__).resolve().parents[1]

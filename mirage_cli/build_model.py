@@ -27,13 +27,13 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from .boards import Board, BoardPoser
 from .camera import Camera
 from .errors import InputError
 from .features import DetectorSettings, detect, make_detector, make_matcher, ratio_match
-from .fileio import read_yaml, require_file
 from .frames import FrameSource, read_image, resolve_inputs
 from .model import Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
-from .pose import Pose, matrix_from_rpy
+from .pose import Pose
 from .trajectory import poses_by_frame, read_pose_csv
 
 log = logging.getLogger("mirage")
@@ -123,155 +123,6 @@ class View:
 
 
 # --------------------------------------------------------------------------------------
-# fiducial boards
-# --------------------------------------------------------------------------------------
-@dataclass
-class BoardSpec:
-    """A ChArUco or ArUco grid board and where it lies in W (see `load_board`)."""
-
-    type: str
-    squares: tuple[int, int]
-    square_m: float
-    marker_m: float
-    dictionary: str
-    separation_m: float = 0.0
-    legacy_pattern: bool = False
-    origin_m: tuple = (0.0, 0.0, 0.0)
-    yaw_deg: float = 0.0
-    placement: str = "ground"  # ground: lying face up, W z up | board: W = board frame
-
-    def make(self):
-        try:
-            d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-            if self.type == "charuco":
-                b = cv2.aruco.CharucoBoard(self.squares, self.square_m, self.marker_m, d)
-                b.setLegacyPattern(bool(self.legacy_pattern))
-            else:
-                b = cv2.aruco.GridBoard(self.squares, self.marker_m, self.separation_m, d)
-        except cv2.error as e:
-            raise InputError(
-                f"board: OpenCV rejects it: {str(e).strip().splitlines()[-1]}"
-            ) from None
-        return b
-
-    @property
-    def T_wb(self) -> Pose:
-        """Board frame -> W. OpenCV's board frame has x along the printed rows, y down the
-        printed image and z into the board; lying face up, that is W's x, -y, -z."""
-        flip = np.diag([1.0, -1.0, -1.0]) if self.placement == "ground" else np.eye(3)
-        R = matrix_from_rpy(0, 0, np.radians(self.yaw_deg)) @ flip
-        return Pose(R, np.asarray(self.origin_m, float))
-
-    def to_yaml(self) -> dict:
-        d = {
-            "type": self.type,
-            "squares": list(self.squares),
-            "square_m": self.square_m,
-            "marker_m": self.marker_m,
-            "dictionary": self.dictionary,
-        }
-        if self.type == "aruco_grid":
-            d["separation_m"] = self.separation_m
-        else:
-            d["legacy_pattern"] = self.legacy_pattern
-        d.update(origin_m=[float(v) for v in self.origin_m], yaw_deg=self.yaw_deg)
-        d["placement"] = self.placement
-        return d
-
-
-def load_board(path) -> BoardSpec:
-    p = require_file(path, "board file")
-    d = read_yaml(p, "board file")
-    if not isinstance(d, dict):
-        raise InputError(f"board file {p}: expected a mapping with type, squares, ...")
-    try:
-        t = str(d.get("type", "charuco")).lower()
-        if t not in ("charuco", "aruco_grid"):
-            raise InputError(f"board file {p}: type must be charuco or aruco_grid, got {t!r}")
-        cols, rows = (int(v) for v in d["squares"])
-        spec = BoardSpec(
-            type=t,
-            squares=(cols, rows),
-            square_m=float(d.get("square_m", 0.0)),
-            marker_m=float(d["marker_m"]),
-            dictionary=str(d.get("dictionary", "DICT_4X4_50")).upper(),
-            separation_m=float(d.get("separation_m", 0.0)),
-            legacy_pattern=bool(d.get("legacy_pattern", False)),
-            origin_m=tuple(float(v) for v in d.get("origin_m", (0, 0, 0))),
-            yaw_deg=float(d.get("yaw_deg", 0.0)),
-            placement=str(d.get("placement", "ground")),
-        )
-    except KeyError as e:
-        raise InputError(f"board file {p}: missing key {e}") from None
-    except (TypeError, ValueError) as e:
-        raise InputError(f"board file {p}: bad value ({e})") from None
-    if not hasattr(cv2.aruco, spec.dictionary) or not spec.dictionary.startswith("DICT_"):
-        raise InputError(f"board file {p}: unknown dictionary {spec.dictionary!r}")
-    if len(spec.origin_m) != 3 or spec.placement not in ("ground", "board"):
-        raise InputError(f"board file {p}: origin_m needs 3 numbers, placement ground|board")
-    if spec.type == "charuco" and not (0 < spec.marker_m < spec.square_m):
-        raise InputError(f"board file {p}: need 0 < marker_m < square_m")
-    if min(cols, rows) < 2 or spec.marker_m <= 0:
-        raise InputError(f"board file {p}: need at least 2x2 squares and marker_m > 0")
-    return spec
-
-
-class BoardPoser:
-    """Pose of the camera in W from the board in one image (None + reason when unreliable)."""
-
-    def __init__(self, spec: BoardSpec, camera: Camera, max_rms_px: float = 1.5):
-        self.spec, self.camera, self.max_rms = spec, camera, max_rms_px
-        self.board = spec.make()
-        try:
-            if spec.type == "charuco":
-                self.det = cv2.aruco.CharucoDetector(self.board)
-            else:
-                self.det = cv2.aruco.ArucoDetector(self.board.getDictionary())
-        except cv2.error as e:
-            raise InputError(f"board: cannot create detector: {e}") from None
-
-    def correspondences(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        try:
-            if self.spec.type == "charuco":
-                ch_corners, ch_ids, _, _ = self.det.detectBoard(gray)
-                if ch_ids is None or len(ch_ids) < 4:
-                    return np.zeros((0, 3)), np.zeros((0, 2))
-                obj = self.board.getChessboardCorners()[ch_ids.ravel()]
-                return obj.astype(float), ch_corners.reshape(-1, 2).astype(float)
-            corners, ids, _ = self.det.detectMarkers(gray)
-            if ids is None or len(ids) == 0:
-                return np.zeros((0, 3)), np.zeros((0, 2))
-            obj, img = self.board.matchImagePoints(corners, ids)
-            if obj is None:
-                return np.zeros((0, 3)), np.zeros((0, 2))
-            return obj.reshape(-1, 3).astype(float), img.reshape(-1, 2).astype(float)
-        except cv2.error:
-            return np.zeros((0, 3)), np.zeros((0, 2))
-
-    def pose(self, gray: np.ndarray) -> tuple[Pose | None, str]:
-        obj, img = self.correspondences(gray)
-        if len(obj) < 6:
-            return None, f"board not found ({len(obj)} corners detected, need 6)"
-        spread = np.linalg.svd(obj[:, :2] - obj[:, :2].mean(0), compute_uv=False)
-        if spread[1] < 0.5 * max(self.spec.square_m, self.spec.marker_m):
-            return None, "board corners nearly collinear"
-        cam, ideal = self.camera.standard(), self.camera.ideal_pixels(img)  # any lens model
-        try:
-            ok, rvec, tvec = cv2.solvePnP(obj, ideal, cam.K, cam.dist, flags=cv2.SOLVEPNP_IPPE)
-            if ok:
-                rvec, tvec = cv2.solvePnPRefineLM(obj, ideal, cam.K, cam.dist, rvec, tvec)
-        except cv2.error as e:
-            return None, f"pose from board failed ({str(e).strip().splitlines()[-1]})"
-        if not ok:
-            return None, "pose from board failed"
-        T_cb = Pose.from_rvec_tvec(rvec, tvec)
-        rms = float(np.sqrt(np.mean(np.sum((self.camera.project(obj, T_cb) - img) ** 2, 1))))
-        if rms > self.max_rms:
-            return None, f"board reprojection error {rms:.1f} px > {self.max_rms:g} px"
-        return T_cb @ self.spec.T_wb.inverse(), f"{len(obj)} corners, {rms:.2f} px"
-
-
-# --------------------------------------------------------------------------------------
 # views and keyframe selection
 # --------------------------------------------------------------------------------------
 def _check_size(img: np.ndarray, camera: Camera, name: str) -> None:
@@ -332,7 +183,7 @@ def views_from_inputs(
     camera: Camera,
     settings: BuildSettings,
     poses_csv=None,
-    board: BoardSpec | None = None,
+    board: Board | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> list[View]:
     """Resolve INPUT into the selected keyframe views (images loaded, sizes checked)."""
@@ -386,7 +237,7 @@ def views_from_inputs(
             progress(k + 1, len(paths))
     if seen == 0:
         raise InputError(
-            f"the {board.type} board of the board file was not found in any of the "
+            f"the {board.pattern} board of the board file was not found in any of the "
             f"{len(paths)} image(s); check its type, squares, dictionary and marker size"
         )
     _need_two(views, "images where the board gives a reliable pose")

@@ -8,12 +8,12 @@ import click
 import numpy as np
 
 from . import ui
+from .boards import load_board
 from .build_model import (
     ROI,
     BuildSettings,
     build_model,
     coverage_warning,
-    load_board,
     views_from_inputs,
 )
 from .camera import Camera

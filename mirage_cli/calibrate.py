@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .boards import Board
 from .errors import InputError, cv_message
 from .frames import FrameSource, read_image
 
@@ -30,63 +31,6 @@ SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 MIN_VIEWS = 3
 MIN_CHARUCO_CORNERS = 8
-
-
-# --- board --------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Board:
-    """A calibration target. For a chessboard cols x rows are inner corners; for a
-    ChArUco board they are squares (what board generators ask for)."""
-
-    cols: int
-    rows: int
-    square_m: float
-    pattern: str = "chessboard"  # chessboard | charuco
-    marker_m: float | None = None  # ChArUco marker side; default 0.75 * square
-    dictionary: str = "DICT_5X5_100"
-    legacy: bool = False  # ChArUco boards made with OpenCV < 4.6 (even row count)
-
-    def __post_init__(self):
-        if self.cols < 2 or self.rows < 2:
-            raise InputError(f"board must be at least 2x2, got {self.cols}x{self.rows}")
-        if not self.square_m > 0:
-            raise InputError(f"square size must be > 0, got {self.square_m}")
-        if self.pattern not in ("chessboard", "charuco"):
-            raise InputError(f"unknown pattern '{self.pattern}' (chessboard or charuco)")
-
-    @property
-    def label(self) -> str:
-        return f"{self.cols}x{self.rows}"
-
-    @property
-    def object_points(self) -> np.ndarray:
-        """(N, 3) float32 corner positions in metres on the board plane (z = 0)."""
-        if self.pattern == "charuco":
-            return self.charuco().getChessboardCorners().astype(np.float32).reshape(-1, 3)
-        grid = np.mgrid[0 : self.cols, 0 : self.rows].T.reshape(-1, 2)
-        pts = np.zeros((len(grid), 3), np.float32)
-        pts[:, :2] = grid * self.square_m
-        return pts
-
-    def charuco(self):
-        """The cv2.aruco.CharucoBoard (built on demand: it is not picklable)."""
-        name = self.dictionary.upper()
-        name = name if name.startswith("DICT_") else f"DICT_{name}"
-        dict_id = getattr(cv2.aruco, name, None)
-        if dict_id is None:
-            raise InputError(f"unknown ArUco dictionary '{self.dictionary}' (e.g. DICT_5X5_100)")
-        marker = self.marker_m if self.marker_m is not None else 0.75 * self.square_m
-        if not 0 < marker < self.square_m:
-            raise InputError(f"marker size must be in (0, square size), got {marker}")
-        try:
-            dictionary = cv2.aruco.getPredefinedDictionary(dict_id)
-            board = cv2.aruco.CharucoBoard(
-                (self.cols, self.rows), self.square_m, marker, dictionary
-            )
-            board.setLegacyPattern(self.legacy)
-        except cv2.error as e:
-            raise InputError(f"cannot build ChArUco board {self.label}: {cv_message(e)}") from None
-        return board
 
 
 # --- detection ----------------------------------------------------------------------------
@@ -245,7 +189,7 @@ def extends_beyond(gray: np.ndarray, grid: np.ndarray, limit: float = 0.75) -> b
 
 
 def _find_charuco(gray, board: Board, subpix_window=None):
-    detector = cv2.aruco.CharucoDetector(board.charuco())
+    detector = board.cv_detector()
     corners, ids, _, _ = detector.detectBoard(gray)
     if corners is None or ids is None or len(ids) < MIN_CHARUCO_CORNERS:
         return None
@@ -490,7 +434,7 @@ def calibrate(det: Detections, board: Board, opts: CalibOptions = CalibOptions()
 
 
 def _calibrate_views(views, board, size, opts):
-    obj_all = board.object_points
+    obj_all = board.object_points.astype(np.float32)
     obj = [np.ascontiguousarray(obj_all[v.ids]) for v in views]
     img = [np.ascontiguousarray(v.corners.reshape(-1, 1, 2), np.float32) for v in views]
     K0 = np.eye(3)  # with FIX_ASPECT_RATIO only fx/fy of the guess is used: 1

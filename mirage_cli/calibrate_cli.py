@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import re
-
 import click
 import numpy as np
 
 from . import ui
-from .calibrate import Board, CalibOptions, Calibration, Detections, detect_images, detect_video
+from .boards import Board, parse_size
+from .calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
 from .config import default_of
@@ -22,13 +21,10 @@ _K_NAMES = ("fx", "fy", "cx", "cy")
 def parse_board(ctx, param, value):
     if value is None:
         return None
-    m = re.fullmatch(r"\s*(\d+)\s*[xX*,]\s*(\d+)\s*", str(value))
-    if not m:
-        raise click.BadParameter(f"'{value}' is not COLSxROWS, e.g. 9x6", ctx, param)
-    cols, rows = int(m.group(1)), int(m.group(2))
-    if cols < 2 or rows < 2:
-        raise click.BadParameter(f"'{value}': both COLS and ROWS must be >= 2", ctx, param)
-    return cols, rows
+    try:
+        return parse_size(value)
+    except ValueError as e:
+        raise click.BadParameter(str(e), ctx, param) from None
 
 
 def _positive(ctx, param, value):
@@ -218,7 +214,7 @@ def _meta(c: Calibration, det: Detections, b: Board) -> dict:
         "std_distortion": [v for k, v in c.std_intrinsics.items() if k not in _K_NAMES],
     }
     if b.pattern == "charuco":
-        meta["marker_m"] = float(b.marker_m if b.marker_m is not None else 0.75 * b.square_m)
+        meta["marker_m"] = float(b.marker_size_m)
         meta["dictionary"] = b.dictionary
     return meta
 

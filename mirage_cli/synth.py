@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .boards import Board
 from .camera import Camera
 from .pose import Pose, look_at, matrix_from_rpy
 from .render import Cylinder, Rect, Renderer, Scene, random_texture, stable_rng
@@ -313,13 +314,9 @@ def board_scene(cols: int, rows: int, square: float, seed: int = 0) -> Scene:
     """
     px = 25  # texels per square
     margin = 1  # white margin, in squares
+    printed = Board(cols, rows, square).image(px, margin)
+    tex = np.repeat(np.where(printed > 127, 245, 25).astype(np.uint8)[..., None], 3, axis=2)
     nx, ny = cols + 1 + 2 * margin, rows + 1 + 2 * margin
-    tex = np.full((ny * px, nx * px, 3), 245, np.uint8)
-    for a in range(cols + 1):
-        for b in range(rows + 1):
-            if (a + b) % 2 == 0:
-                y0, x0 = (b + margin) * px, (a + margin) * px
-                tex[y0 : y0 + px, x0 : x0 + px] = 25
     texel = square / px
     origin = (-(1 + margin) * square, -(1 + margin) * square, 0.0)
     board = Rect(
@@ -332,17 +329,12 @@ def board_scene(cols: int, rows: int, square: float, seed: int = 0) -> Scene:
     return Scene([board, desk])
 
 
-def board_corners(cols: int, rows: int, square: float) -> np.ndarray:
-    j, i = np.mgrid[0:rows, 0:cols]
-    return np.column_stack([i.ravel() * square, j.ravel() * square, np.zeros(i.size)])
-
-
 def calibration_poses(
     camera: Camera, cols: int, rows: int, square: float, n: int, rng: np.random.Generator
 ) -> list[Pose]:
     """Views as a person takes them: tilted up to ~50 deg, rolled, the board in every part
     of the image (corners too), fully visible."""
-    corners = board_corners(cols, rows, square)
+    corners = Board(cols, rows, square).object_points
     centre = corners.mean(axis=0)
     span = np.ptp(corners, axis=0).max()
     poses: list[Pose] = []
@@ -487,49 +479,39 @@ def encode_jpeg(img: np.ndarray, quality: int = 95) -> bytes:
 # --------------------------------------------------------------------------------------
 # opt-in: a ChArUco board lying on the ground around the landmark (`--ground-board`)
 # --------------------------------------------------------------------------------------
-GROUND_BOARD = {
-    "type": "charuco",
-    "squares": [10, 10],
-    "square_m": 0.14,
-    "marker_m": 0.105,
-    "dictionary": "DICT_4X4_250",
-    "legacy_pattern": False,
+GROUND_BOARD = Board(
+    10,
+    10,
+    0.14,
+    "charuco",
+    marker_m=0.105,
+    dictionary="DICT_4X4_250",
     # W position of the printed board's top-left corner; the board lies face up, its
-    # printed x axis along W +x and its printed "up" along W +y (see build_model.BoardSpec)
-    "origin_m": [-0.7, 0.7, 0.0005],
-    "yaw_deg": 0.0,
-    "placement": "ground",
-}
+    # printed x axis along W +x and its printed "up" along W +y (see Board.T_wb)
+    origin_m=(-0.7, 0.7, 0.0005),
+    placement="ground",
+)
 
 
-def ground_board_image(spec: dict = GROUND_BOARD, texel_m: float = 0.001) -> np.ndarray:
+def ground_board_image(board: Board = GROUND_BOARD, texel_m: float = 0.001) -> np.ndarray:
     """The board as printed (BGR), one pixel per `texel_m`."""
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, spec["dictionary"]))
-    cols, rows = spec["squares"]
-    board = cv2.aruco.CharucoBoard((cols, rows), spec["square_m"], spec["marker_m"], d)
-    board.setLegacyPattern(bool(spec.get("legacy_pattern", False)))
-    size = (
-        int(round(cols * spec["square_m"] / texel_m)),
-        int(round(rows * spec["square_m"] / texel_m)),
-    )
-    img = board.generateImage(size, marginSize=0, borderBits=1)
+    img = board.image(int(round(board.cell_m / texel_m)))
     return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
 
 
-def add_ground_board(scene: Scene, spec: dict = GROUND_BOARD) -> Scene:
-    """The scene with the board lying on the ground (0.5 mm above it, so it is seen
-    rather than the ground texture); the landmark stands on its middle."""
+def add_ground_board(scene: Scene, board: Board = GROUND_BOARD) -> Scene:
+    """The scene with the board lying where `board` says (its origin 0.5 mm above the
+    ground, so it is seen rather than the ground texture); the landmark stands on it."""
     texel = 0.001
-    cols, rows = spec["squares"]
-    size = (cols * spec["square_m"], rows * spec["square_m"])
+    axes = board.T_wb.R + 0.0  # columns: the printed x and y axes in W (+0.0: no -0.0)
     rect = Rect(
         "ground-board",
-        tuple(spec["origin_m"]),
-        (1.0, 0.0, 0.0),
-        (0.0, -1.0, 0.0),
-        size,
+        board.origin_m,
+        axes[:, 0],
+        axes[:, 1],
+        board.size_m,
         texel,
-        ground_board_image(spec, texel),
+        ground_board_image(board, texel),
         0.9,
     )
     return Scene(

@@ -280,7 +280,9 @@ def synth_cmd(
             scene = synth.add_ground_board(scene)
             with atomic_write(out / "board.yaml") as f:
                 f.write("# The ChArUco board on the ground (mirage synth --ground-board).\n")
-                yaml.safe_dump(synth.GROUND_BOARD, f, sort_keys=False, default_flow_style=None)
+                yaml.safe_dump(
+                    synth.GROUND_BOARD.to_yaml(), f, sort_keys=False, default_flow_style=None
+                )
         renderer = Renderer(scene, cam, aa=aa)
         if "keyframes" in parts:
             _keyframes(

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import run_mirage as mirage
 
+from mirage_cli.boards import Board
 from mirage_cli.calibrate import (
-    Board,
     CalibOptions,
     Detections,
     View,
@@ -138,7 +138,7 @@ def test_synthetic_against_truth(tmp_path):
 def test_charuco_rendered_views():
     """ChArUco detection + calibration on pinhole renders (exact homographies)."""
     board = Board(7, 5, 0.04, "charuco", 0.03, "DICT_5X5_100")
-    tex = board.charuco().generateImage((7 * 80, 5 * 80), marginSize=0)  # 80 px / square
+    tex = board.cv_board().generateImage((7 * 80, 5 * 80), marginSize=0)  # 80 px / square
     K = np.array([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]])
     S = np.diag([0.04 / 80, 0.04 / 80, 1.0])  # texture px -> metres
     rng = np.random.default_rng(3)
