@@ -5,7 +5,6 @@ from __future__ import annotations
 import time
 
 import click
-import numpy as np
 
 from . import ui
 from .boards import load_board
@@ -20,8 +19,9 @@ from .camera import Camera
 from .config import default_of
 from .errors import InputError
 from .features import DETECTORS, DetectorSettings
-from .fileio import atomic_path, check_writable, refuse_overwrite
+from .fileio import check_writable, refuse_overwrite
 from .model import LandmarkModel
+from .plotting import TOP_VIEW_DPI, save_png, top_view_figure
 from .validate import BoundedInt, FiniteFloat
 
 
@@ -238,37 +238,5 @@ def inspect_cmd(model_path, plot):
     if gap:
         ui.log.warning(gap)
     if plot:
-        write_top_view(model, plot)
+        save_png(top_view_figure(model), plot, TOP_VIEW_DPI, bbox_inches="tight")
         ui.echo(f"  plot               {plot}")
-
-
-def write_top_view(model: LandmarkModel, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 7))
-    X = model.points
-    if len(X):
-        sc = ax.scatter(X[:, 0], X[:, 1], s=2, c=X[:, 2], cmap="viridis", label="3D points")
-        fig.colorbar(sc, ax=ax, shrink=0.7, label="z (m)")
-    C = np.array([kf.pose.center for kf in model.keyframes])
-    axis = np.array([kf.pose.R[2] for kf in model.keyframes])
-    ax.scatter(C[:, 0], C[:, 1], marker="^", c="tab:red", s=30, label="keyframes")
-    ax.quiver(C[:, 0], C[:, 1], axis[:, 0], axis[:, 1], color="tab:red", width=0.003)
-    for kf, c in zip(model.keyframes, C, strict=True):
-        ax.annotate(f"{kf.n_linked}", c[:2], fontsize=6, xytext=(3, 3), textcoords="offset points")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    s = model.summary()
-    ax.set_title(
-        f"{s['keyframes']} keyframes, {s['points']} points, "
-        f"RMS {s['rms_reprojection_px']:.2f} px (labels: points per keyframe)"
-    )
-    ax.legend(loc="upper right", fontsize=8)
-    ax.grid(alpha=0.3)
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    plt.close(fig)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import click
-import numpy as np
 
 from . import ui
 from .boards import Board, parse_size
@@ -11,8 +10,9 @@ from .calibrate import CalibOptions, Calibration, Detections, detect_images, det
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
 from .config import default_of
-from .fileio import atomic_path, check_writable, refuse_overwrite
+from .fileio import check_writable, refuse_overwrite
 from .frames import FrameSource, resolve_inputs
+from .plotting import CALIBRATION_DPI, calibration_figure, save_png
 from .validate import BoundedInt, FiniteFloat
 
 _K_NAMES = ("fx", "fy", "cx", "cy")
@@ -196,7 +196,7 @@ def calibrate_detections(det: Detections, target: Board, opts: CalibOptions, out
     cam = Camera(calib.K, calib.dist, *calib.image_size, calib.rms_px, _meta(calib, det, target))
     cam.save(output)
     if report:
-        write_report(report, calib, det)
+        save_png(calibration_figure(calib), report, CALIBRATION_DPI)
     _summary(calib, det, target, output, report)
 
 
@@ -247,45 +247,3 @@ def _summary(c: Calibration, det: Detections, b: Board, output, report) -> None:
 
 def _dist_names(c: Calibration) -> list[str]:
     return [k for k in c.std_intrinsics if k not in _K_NAMES]
-
-
-def write_report(path, c: Calibration, det: Detections) -> None:
-    """Corner coverage over the image and per-view RMS, as one PNG (written atomically)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    w, h = c.image_size
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5), width_ratios=[1.1, 1])
-    cmap = plt.get_cmap("viridis")
-    for i, v in enumerate(c.views):
-        ax1.plot(
-            v.corners[:, 0], v.corners[:, 1], ".", ms=3, color=cmap(i / max(1, len(c.views) - 1))
-        )
-    for v, _ in c.rejected:
-        ax1.plot(v.corners[:, 0], v.corners[:, 1], "x", ms=3, color="red")
-    ax1.set(
-        xlim=(0, w),
-        ylim=(h, 0),
-        aspect="equal",
-        xlabel="x (px)",
-        ylabel="y (px)",
-        title=f"corner coverage ({len(c.views)} views; rejected x red)",
-    )
-    ax1.add_patch(plt.Rectangle((0, 0), w, h, fill=False, lw=1, color="k"))
-
-    names = [v.name for v in c.views] + [v.name for v, _ in c.rejected]
-    errs = np.r_[c.view_errors_px, [e for _, e in c.rejected]]
-    colors = ["tab:blue"] * len(c.views) + ["tab:red"] * len(c.rejected)
-    ax2.bar(range(len(errs)), errs, color=colors)
-    ax2.axhline(c.rms_px, color="k", lw=1, ls="--", label=f"overall RMS {c.rms_px:.3f} px")
-    if c.threshold_px is not None and c.threshold_px < 2 * errs.max():
-        ax2.axhline(c.threshold_px, color="tab:red", lw=1, ls=":", label="rejection limit")
-    ax2.set_xticks(range(len(errs)), names, rotation=90, fontsize=7)
-    ax2.set(ylabel="RMS reprojection error (px)", title="per-view error")
-    ax2.legend(fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)

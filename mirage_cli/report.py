@@ -1,7 +1,8 @@
-"""Path-tracking report (brief, section 4.4): per-frame error table, summary, plot.
+"""Path-tracking report (brief, section 4.4): per-frame error table and summary.
 
 Pure core: takes validated pose tables (mirage_cli.trajectory) and a desired path
-(mirage_cli.path); no terminal I/O. Everything is vectorised over frames.
+(mirage_cli.path) and does no I/O: report_cli writes the files, mirage_cli.plotting draws
+the plot. Everything is vectorised over frames.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import InputError
-from .path import CirclePath, Path_
+from .path import Path_
 from .trajectory import Status
 
 BASE_COLUMNS = [
@@ -186,77 +187,3 @@ def _visibility(ok: np.ndarray, visible: pd.Series) -> dict:
 def summary_rows(summary: dict) -> list[tuple[str, dict]]:
     """(name, stats) for printing a table."""
     return list(summary["errors"].items())
-
-
-def plot_report(path_png, rep: Report, path: Path_) -> None:
-    """Top view (desired path, estimate, truth, lost frames) and errors over time, one PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .fileio import atomic_path
-
-    tab = rep.table
-    err_cols = [c for c in tab.columns if c in SIGNED or c in TRUTH_COLUMNS]
-    t = tab["time_s"].to_numpy(float)
-    xlabel = "time (s)"
-    if not np.isfinite(t).any():
-        t, xlabel = np.arange(len(tab), dtype=float), "frame"
-    ok = (tab["status"] == Status.OK).to_numpy()
-    edges = np.flatnonzero(np.diff(np.r_[0, (~ok).astype(np.int8), 0]))
-    lost_runs = list(zip(edges[::2], edges[1::2], strict=True))
-    step = _step(t)
-
-    fig = plt.figure(figsize=(13, max(6.0, 1.9 * len(err_cols))))
-    gs = fig.add_gridspec(len(err_cols), 2, width_ratios=[1.15, 1])
-    ax = fig.add_subplot(gs[:, 0])
-    d = path.sample(361)
-    ax.plot(d[:, 0], d[:, 1], "-", color="0.5", lw=2, label="desired path")
-    k = max(1, len(d) // 36)
-    if isinstance(path, CirclePath) and path.direction == "cw":
-        d = d[::-1]
-    ax.annotate("", d[k, :2], d[0, :2], arrowprops={"arrowstyle": "->", "color": "0.3", "lw": 2})
-    if rep.truth is not None:
-        tt = rep.truth
-        ax.plot(tt["x_m"], tt["y_m"], "-", color="tab:green", lw=3, alpha=0.5, label="truth")
-        if (~ok).any():
-            ax.plot(
-                tt["x_m"].to_numpy(float)[~ok],
-                tt["y_m"].to_numpy(float)[~ok],
-                "x",
-                color="tab:red",
-                ms=4,
-                label=f"lost ({(~ok).sum()} frames, at truth)",
-            )
-    ax.plot(tab["x_m"], tab["y_m"], ".-", color="tab:blue", ms=2, lw=0.8, label="estimate")
-    if (~ok).any() and rep.truth is None:
-        # no truth: mark lost frames at the last known position
-        last = tab[["x_m", "y_m"]].ffill().to_numpy(float)[~ok]
-        ax.plot(last[:, 0], last[:, 1], "x", color="tab:red", ms=4, label="lost (last pose)")
-    ax.plot([0], [0], "k*", ms=14, label="landmark")
-    ax.set(aspect="equal", xlabel="x (m)", ylabel="y (m)", title="top view")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(0.0, -0.09), ncol=3)
-    tracked = rep.summary["tracked_pct"]
-    fig.suptitle(f"mirage report: {len(tab)} frames, {tracked:.1f}% tracked")
-    for i, c in enumerate(err_cols):
-        a = fig.add_subplot(gs[i, 1])
-        a.plot(t, tab[c].to_numpy(float), "-", lw=1)
-        a.axhline(0, color="k", lw=0.5)
-        for j0, j1 in lost_runs:
-            a.axvspan(t[j0] - 0.5 * step, t[j1 - 1] + 0.5 * step, color="tab:red", alpha=0.12)
-        a.set_ylabel(c.replace("_", " "), fontsize=8)
-        a.grid(alpha=0.3)
-        if i == len(err_cols) - 1:
-            a.set_xlabel(xlabel)
-    fig.tight_layout()
-    with atomic_path(path_png, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
-
-
-def _step(t: np.ndarray) -> float:
-    d = np.diff(t)
-    d = d[np.isfinite(d) & (d > 0)]
-    return float(np.median(d)) if len(d) else 1.0

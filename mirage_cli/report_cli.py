@@ -9,7 +9,8 @@ import yaml
 from . import ui
 from .fileio import atomic_write, check_writable, refuse_overwrite
 from .path import load_path
-from .report import Report, make_report, plot_report
+from .plotting import REPORT_DPI, report_figure, save_png
+from .report import Report, make_report
 from .trajectory import guess_format, match_times, read_pose_csv, read_trajectory
 
 _UNITS = {"_m": "m", "_deg": "deg"}
@@ -23,7 +24,7 @@ def write_report(rep: Report, output, summary_path=None, plot_path=None, path=No
         with atomic_write(summary_path) as f:
             yaml.safe_dump(rep.summary, f, sort_keys=False)
     if plot_path:
-        plot_report(plot_path, rep, path)
+        save_png(report_figure(rep, path), plot_path, REPORT_DPI)
 
 
 def summary_lines(s: dict) -> list[str]:

@@ -22,39 +22,11 @@ from .fileio import (
 )
 from .frames import FrameSource, matching_camera
 from .model import LandmarkModel
+from .plotting import draw_overlay
 from .solver import METHODS, warm_up
 from .track import Tracker, TrackSettings
-from .trajectory import TRACK_COLUMNS, FrameRecord, Status, TrajectoryWriter
+from .trajectory import TRACK_COLUMNS, Status, TrajectoryWriter
 from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
-
-
-# --------------------------------------------------------------------------------------
-# overlay
-# --------------------------------------------------------------------------------------
-def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: float) -> np.ndarray:
-    out = img.copy()
-    if res.status == "ok":
-        if res.inlier_px is not None:  # 3x3 green dots, stamped with numpy
-            p = np.rint(res.inlier_px).astype(int)
-            h, w = out.shape[:2]
-            for dy in (-1, 0, 1):
-                for dx in (-1, 0, 1):
-                    x, y = p[:, 0] + dx, p[:, 1] + dy
-                    ok = (x >= 0) & (x < w) & (y >= 0) & (y < h)
-                    out[y[ok], x[ok]] = (0, 255, 0)
-        ends = np.array([[0, 0, 0], [axis_m, 0, 0], [0, axis_m, 0], [0, 0, axis_m]], float)
-        if (res.pose.transform(ends)[:, 2] > 0.01).all():  # W axes: x red, y green, z blue
-            o, *tips = camera.project(ends, res.pose).round().astype(int)
-            for tip, col in zip(tips, [(0, 0, 255), (0, 255, 0), (255, 0, 0)], strict=True):
-                cv2.line(out, tuple(map(int, o)), tuple(map(int, tip)), col, 3, cv2.LINE_AA)
-        text = f"ok  {res.inliers} inliers  {res.rmse_px:.2f}px  kf {res.keyframe}"
-        color = (0, 220, 0)
-    else:
-        text, color = res.status.upper(), (0, 0, 255)
-    (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 2)
-    cv2.rectangle(out, (4, 4), (16 + w, 16 + h), (0, 0, 0), -1)
-    cv2.putText(out, text, (10, 10 + h), cv2.FONT_HERSHEY_SIMPLEX, 0.6, color, 2, cv2.LINE_AA)
-    return out
 
 
 # --------------------------------------------------------------------------------------
