@@ -83,6 +83,19 @@ def _leave(raise_pending: bool) -> None:
             raise _exception(pending)
 
 
+@contextlib.contextmanager
+def through_compiled_code():
+    """A signal that lands while numba-compiled code runs surfaces as SystemError ("returned
+    a result with an exception set") whose context is our KeyboardInterrupt: re-raise the
+    interrupt itself, so the code that keeps finished frames sees it."""
+    try:
+        yield
+    except SystemError as e:
+        if isinstance(e.__context__, KeyboardInterrupt):
+            raise e.__context__ from None
+        raise
+
+
 def worker_init() -> None:
     """For worker processes: the parent handles both signals and stops the pool."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)

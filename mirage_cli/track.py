@@ -22,6 +22,7 @@ from .features import detect, guided_match, make_detector
 from .frames import Frame
 from .model import LandmarkModel, point_twins
 from .pose import Pose
+from .signals import through_compiled_code
 from .solver import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from .trajectory import FrameRecord, Status
 
@@ -376,7 +377,8 @@ def run(
             if gray.shape[::-1] != tracker.camera.size:
                 rec = FrameRecord(Status.SIZE_MISMATCH)
             else:
-                rec = tracker.process(gray)
+                with through_compiled_code():
+                    rec = tracker.process(gray)
         rec.frame, rec.time_s = f.id, f.time_s
         rec.ms = round((time.perf_counter() - t0) * 1000, 2)
         if keep_images:

@@ -721,3 +721,22 @@ def test_sigterm_while_writing_the_model_leaves_no_temp_file(world):
         assert_contract(p.returncode, err, 143, prefix="mirage: interrupted (SIGTERM)")
         assert (tmp / "out.mirage").read_text() == PROTECTED["out.mirage"]
     assert not _hidden(tmp), _hidden(tmp)
+
+
+def test_interrupt_inside_compiled_code_is_the_interrupt():
+    """numba reports a signal that lands in compiled code as SystemError with the
+    KeyboardInterrupt as its context; the tracking loop must see the interrupt itself."""
+    from mirage_cli.signals import Terminated, through_compiled_code
+
+    def compiled_call_interrupted():
+        try:
+            raise Terminated()
+        except Terminated:
+            raise SystemError("returned a result with an exception set")  # noqa: B904
+
+    with pytest.raises(Terminated):
+        with through_compiled_code():
+            compiled_call_interrupted()
+    with pytest.raises(SystemError):  # any other SystemError is left alone
+        with through_compiled_code():
+            raise SystemError("a real one")
