@@ -3,6 +3,7 @@ wrong types in mirage.yaml are one-line errors that name the file, section and k
 
 import re
 
+import click
 import pytest
 import yaml
 from conftest import ROOT, assert_one_line_error
@@ -55,7 +56,8 @@ def test_example_config_passes_the_check_and_its_defaults_are_the_real_ones():
         elif m := re.match(r"^\s+([a-z-]+):\s*(\S.*?)\s+#\s*default\s*(;|$)", line):
             p = next(p for p in section.params if f"--{m.group(1)}" in p.opts)
             value = yaml.safe_load(m.group(2))
-            assert p.type_cast_value(None, value) == p.type_cast_value(None, p.default), line
+            ctx = click.Context(section)  # get_default: click >= 8.3 keeps unset defaults unset
+            assert p.type_cast_value(ctx, value) == p.get_default(ctx), line
             checked += 1
     assert checked >= 30
 
