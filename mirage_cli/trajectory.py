@@ -395,12 +395,15 @@ def _pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.Dat
 def read_tum(path) -> pd.DataFrame:
     """A TUM file (`time tx ty tz qx qy qz qw`): frames are the row numbers."""
     a = _numbers(path, "TUM", 8)
-    return _pose_table(range(len(a)), a[:, 0], a[:, 1:4], a[:, [7, 4, 5, 6]])
+    validate.unique_times(a[:, 0], path, "TUM")
+    q = validate.unit_quaternion_rows(a[:, [7, 4, 5, 6]], path, "TUM")
+    return _pose_table(range(len(a)), a[:, 0], a[:, 1:4], q)
 
 
 def read_kitti(path) -> pd.DataFrame:
     """A KITTI poses file (12 numbers of T_WC a line): frames are the row numbers, no times."""
     T = _numbers(path, "KITTI", 12).reshape(-1, 3, 4)
+    validate.rotation_rows(T[:, :, :3], path, "KITTI")
     q = Rotation.from_matrix(T[:, :, :3]).as_quat()[:, [3, 0, 1, 2]]
     return _pose_table(range(len(T)), np.nan, T[:, :, 3], q)
 

@@ -190,3 +190,41 @@ def pose_table(df: pd.DataFrame, path, require_pose: bool = True) -> None:
     unique_frames(df, path)
     if require_pose:
         unit_quaternions(df, path, ok)
+
+
+def unit_quaternion_rows(q: np.ndarray, path, what: str, tol: float = QUAT_TOL) -> np.ndarray:
+    """Rows (w, x, y, z) of a headerless file (TUM) normalised; a norm off 1 by more than
+    `tol` is refused naming the data row (a zero quaternion would divide by zero)."""
+    n = np.linalg.norm(q, axis=1)
+    bad = ~(np.abs(n - 1.0) <= tol)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(
+            f"{what} file {path}: data row {i + 1} has a quaternion of norm {n[i]:.4g}; "
+            f"expected a unit quaternion (norm 1 +- {tol:g})"
+        )
+    return q / n[:, None]
+
+
+def rotation_rows(R: np.ndarray, path, what: str, tol: float = 1e-3) -> None:
+    """(N,3,3) rotation matrices: orthonormal with determinant +1 (scipy would silently
+    turn any matrix into some rotation)."""
+    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = ~(err <= tol) | ~(np.linalg.det(R) > 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(
+            f"{what} file {path}: data row {i + 1} is not a rotation (R^T R != I or det <= 0)"
+        )
+
+
+def unique_times(t: np.ndarray, path, what: str) -> None:
+    """A timestamp listed twice makes matching by time ambiguous: refuse it."""
+    _, first, counts = np.unique(t, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        dup = t[first[np.argmax(counts > 1)]]
+        rows = np.flatnonzero(t == dup)[:2] + 1
+        raise InputError(
+            f"{what} file {path}: data rows {rows[0]} and {rows[1]} have the same "
+            f"timestamp {dup:g}; each time may appear once"
+        )

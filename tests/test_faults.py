@@ -46,6 +46,12 @@ BAD_FILES = {
     "text.csv": "\x00\x01\x02garbage\xff",
     "bad.yaml": "type: circle\ncenter: [0, 0\n",
     "notzip.mirage": "this is not a model\n",
+    "zero_q.tum": "0.0 1 2 0.5 0 0 0 1\n0.033 1 2 0.5 0 0 0 0\n",
+    "big_q.tum": "0.0 1 2 0.5 0 0 0 1\n0.033 1 2 0.5 0 0 0 2\n",
+    "dup_t.tum": "0.0 1 2 0.5 0 0 0 1\n0.0 1.1 2 0.5 0 0 0 1\n",
+    "nan.tum": "0.0 1 2 nan 0 0 0 1\n",
+    "scaled_r.kitti": "2 0 0 1 0 2 0 2 0 0 2 0.5\n",
+    "mirror_r.kitti": "-1 0 0 1 0 1 0 2 0 0 1 0.5\n",
 }
 # good outputs that exist before every case: a failing run must leave them as they are
 PROTECTED = {
@@ -406,6 +412,12 @@ CASES = [
         contains="finite",
     ),  # fmt: skip
     C("report-truth-q2", *REPORT, "--truth", "q2.csv", contains="unit quaternion"),
+    C("report-truth-tum-zero-q", *REPORT, "--truth", "zero_q.tum", contains="data row 2"),
+    C("report-truth-tum-big-q", *REPORT, "--truth", "big_q.tum", contains="unit quaternion"),
+    C("report-truth-tum-dup-time", *REPORT, "--truth", "dup_t.tum", contains="same timestamp"),
+    C("report-truth-tum-nan", *REPORT, "--truth", "nan.tum", contains="finite"),
+    C("report-truth-kitti-scaled", *REPORT, "--truth", "scaled_r.kitti", contains="rotation"),
+    C("report-truth-kitti-mirror", *REPORT, "--truth", "mirror_r.kitti", contains="rotation"),
     C(
         "report-poses-empty",
         "report",
