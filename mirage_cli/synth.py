@@ -168,16 +168,21 @@ def landmark_scene(
 
 def _ground(seed: int) -> Rect:
     """The default ground: a 12 m square of non-repeating texture, 5 mm texels."""
-    g = 12.0
-    ground_tex = random_texture(stable_rng(seed, "ground"), 2400, 2400, density=0.8, scale=3)
+    return _ground_rect(
+        random_texture(stable_rng(seed, "ground"), 2400, 2400, density=0.8, scale=3), 12.0
+    )
+
+
+def _ground_rect(texture: np.ndarray, g: float) -> Rect:
+    """The ground: a square `g` metres wide centred on the origin, covered by `texture`."""
     return Rect(
         "ground",
         (-g / 2, g / 2, 0.0),
         (1.0, 0, 0),
         (0, -1.0, 0),
         (g, g),
-        g / 2400,
-        ground_tex,
+        g / texture.shape[1],
+        texture,
         0.85,
     )
 
@@ -196,17 +201,7 @@ def _tiled_ground(seed: int, period_m: float) -> Rect:
     tile = random_texture(
         stable_rng(seed, "ground-tile"), n, n, density=0.8, scale=3 * 0.005 / texel
     )
-    tex = np.tile(tile, (tiles, tiles, 1))
-    return Rect(
-        "ground",
-        (-g / 2, g / 2, 0.0),
-        (1.0, 0, 0),
-        (0, -1.0, 0),
-        (g, g),
-        g / tex.shape[1],
-        tex,
-        0.85,
-    )
+    return _ground_rect(np.tile(tile, (tiles, tiles, 1)), g)
 
 
 # An occluder for `--pole`: a vertical textured cylinder between the orbit and the landmark,
