@@ -78,21 +78,10 @@ class Camera:
             )
 
     # --- accessors ----------------------------------------------------------------------
-    @property
-    def fx(self) -> float:
-        return float(self.K[0, 0])
-
-    @property
-    def fy(self) -> float:
-        return float(self.K[1, 1])
-
-    @property
-    def cx(self) -> float:
-        return float(self.K[0, 2])
-
-    @property
-    def cy(self) -> float:
-        return float(self.K[1, 2])
+    fx = property(lambda self: float(self.K[0, 0]), doc="focal length in x (px)")
+    fy = property(lambda self: float(self.K[1, 1]), doc="focal length in y (px)")
+    cx = property(lambda self: float(self.K[0, 2]), doc="principal point x (px)")
+    cy = property(lambda self: float(self.K[1, 2]), doc="principal point y (px)")
 
     @property
     def size(self) -> tuple[int, int]:
