@@ -2,10 +2,11 @@
 
     python benchmarks/solvers.py [--quick] [--trials N] [--seed S]
 
-Scenes: a 1280x720 camera (f = 1000 px, no distortion) 1.5-2.5 m from a landmark at the
-origin; non-planar points fill a 0.5 m box, planar points a 0.5 m square facing the camera
-(tilted up to 30 deg).  The reference pose is the camera moved around the landmark by the
-offset angle (still looking at it): rotation error = offset, centre shift = 2 d sin(offset/2).
+Scenes (mirage_cli.synth.pnp_scene, the same as tests/test_solver.py): a 1280x720 camera
+(f = 1000 px, no distortion) 1.5-2.5 m from a landmark at the origin; non-planar points
+fill a 0.5 m box, planar points a 0.5 m square facing the camera (tilted up to 30 deg).
+The reference pose is the camera moved around the landmark by the offset angle (still
+looking at it): rotation error = offset, centre shift = 2 d sin(offset/2).
 Errors: rotation = angle of R_est R_true^T (deg); translation = camera-centre error in % of
 the camera-landmark distance.  The bound: Fisher information J^T J / sigma^2 at the TRUE pose
 (J in pixels, left perturbation of T_CW, so the centre error is the translation block); the
@@ -27,48 +28,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from mirage_cli.camera import Camera  # noqa: E402
-from mirage_cli.pose import Pose, look_at, rodrigues, rotvec  # noqa: E402
+from mirage_cli.pose import Pose, rodrigues, rotvec  # noqa: E402
 from mirage_cli.solver import RansacOptions, cramer_rao_covariance, solve_pose  # noqa: E402
+from mirage_cli.synth import pnp_scene  # noqa: E402
 
 SOLVERS = ("mirage-s", "epnp", "sqpnp", "iterative", "ap3p")
 CAM = Camera.from_params(1280, 720, 1000.0)
-
-
-def random_unit(rng) -> np.ndarray:
-    v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
-
-
-def make_scene(rng, n: int, planar: bool = False, offset_deg: float = 15.0):
-    """(points_3d, true pose, reference pose) with every point inside the image."""
-    while True:
-        d = rng.uniform(1.5, 2.5)
-        c = random_unit(rng)
-        c[2] = abs(c[2]) * 0.7  # mostly around and above the landmark, like a drone
-        c = c / np.linalg.norm(c) * d
-        if planar:
-            tilt = np.radians(rng.uniform(0.0, 30.0))
-            nrm = c / d
-            a = random_unit(rng)
-            a -= a.dot(nrm) * nrm
-            a /= np.linalg.norm(a)
-            nrm = rodrigues(a * tilt) @ nrm
-            e1 = np.cross(nrm, random_unit(rng))
-            e1 /= np.linalg.norm(e1)
-            e2 = np.cross(nrm, e1)
-            uv = rng.uniform(-0.25, 0.25, (n, 2))
-            X = uv[:, :1] * e1 + uv[:, 1:] * e2
-        else:
-            X = rng.uniform(-0.25, 0.25, (n, 3))
-        truth = look_at(c, rng.normal(scale=0.05, size=3))
-        u = CAM.project(X, truth)
-        if np.all((u > 0) & (u < [CAM.width, CAM.height])):
-            break
-    # reference: the camera moved around the landmark by offset_deg, still looking at it
-    axis = random_unit(rng)
-    Q = rodrigues(axis * math.radians(offset_deg))
-    ref = Pose.from_center(Q @ truth.R_wc, Q @ truth.center)
-    return X, truth, ref
 
 
 def observe(rng, X, truth, sigma: float, outlier_ratio: float = 0.0):
@@ -100,7 +65,7 @@ def run_config(rng, n, sigma, planar, offset, outliers, trials, solvers, ransac=
     out = {s: {"rot": [], "tr": [], "ok": 0, "us": []} for s in solvers}
     b_rot, b_tr = [], []
     for _ in range(trials):
-        X, truth, ref = make_scene(rng, n, planar, offset)
+        X, truth, ref = pnp_scene(rng, n, CAM, planar, offset)
         u, inl = observe(rng, X, truth, sigma, outliers)
         dist = float(np.linalg.norm(truth.center))
         if sigma > 0:
@@ -177,7 +142,7 @@ def outliers_vs_clean(rng, trials: int, n: int = 100, ratio: float = 0.3):
     """Same scenes twice: n points with 30% outliers (RANSAC on) vs only the 70 inliers."""
     er, et, cr, ct, fail = [], [], [], [], 0
     for _ in range(trials):
-        X, truth, ref = make_scene(rng, n, False, 15.0)
+        X, truth, ref = pnp_scene(rng, n, CAM, False, 15.0)
         u, inl = observe(rng, X, truth, 1.0, ratio)
         dist = float(np.linalg.norm(truth.center))
         a = solve_pose(X, u, CAM, ref, ransac=RansacOptions(seed=1))
@@ -218,7 +183,7 @@ def planar_tail(rng, trials: int, n: int = 10):
         e = {"mirage-s": ([], []), "sqpnp": ([], [])}
         br, bt, fail = [], [], 0
         for _ in range(trials):
-            X, truth, ref = make_scene(rng, n, True, off)
+            X, truth, ref = pnp_scene(rng, n, CAM, True, off)
             u, _ = observe(rng, X, truth, 1.0)
             d = float(np.linalg.norm(truth.center))
             a, b = crb(X, truth, 1.0)
@@ -241,7 +206,7 @@ def planar_tail(rng, trials: int, n: int = 10):
 
 def speed(rng, n=100, reps=300):
     """Median solve time at n=100 (no RANSAC): every method through solve_pose, and raw cv2."""
-    X, truth, ref = make_scene(rng, n, False, 15.0)
+    X, truth, ref = pnp_scene(rng, n, CAM, False, 15.0)
     u, _ = observe(rng, X, truth, 1.0)
     Xc, uc = np.ascontiguousarray(X), np.ascontiguousarray(u)
     rows = []
@@ -302,7 +267,7 @@ def honesty(rng, trials: int):
     for planar, n, sigma in ((False, 10, 1.0), (False, 50, 2.0), (True, 10, 1.0), (False, 6, 1.0)):
         er, ep, sr, sp, nees = [], [], [], [], []
         for _ in range(trials):
-            X, truth, ref = make_scene(rng, n, planar, 15.0)
+            X, truth, ref = pnp_scene(rng, n, CAM, planar, 15.0)
             u, _ = observe(rng, X, truth, sigma)
             est = solve_pose(X, u, CAM, ref)
             if not est.success:

@@ -1,11 +1,13 @@
 """Synthetic test scenes with exact ground truth: a textured 3D landmark, a chessboard,
-keyframes circling the landmark, and an orbit video path with realistic deviations.
+keyframes circling the landmark, an orbit video path with realistic deviations, and point
+scenes for the pose solver's tests and benchmark.
 
 Pure core: builds scenes, poses and images in memory; `synth_cli` writes the files.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -13,7 +15,7 @@ import numpy as np
 
 from .boards import Board
 from .camera import Camera
-from .pose import Pose, look_at, matrix_from_rpy
+from .pose import Pose, look_at, matrix_from_rpy, rodrigues
 from .render import Cylinder, Rect, Renderer, Scene, random_texture, stable_rng
 
 LIGHT = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
@@ -516,3 +518,49 @@ def add_ground_board(scene: Scene, board: Board = GROUND_BOARD) -> Scene:
         scene.markers,
         scene.marker_normals,
     )
+
+
+# --------------------------------------------------------------------------------------
+# point scenes for the pose solver (no images: its tests and benchmarks/solvers.py)
+# --------------------------------------------------------------------------------------
+def random_unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def pnp_scene(
+    rng: np.random.Generator, n: int, cam: Camera, planar: bool = False, offset_deg: float = 15.0
+) -> tuple[np.ndarray, Pose, Pose]:
+    """(points_w, true pose, reference pose): n points near the origin, all in the image of
+    `cam` 1.5-2.5 m away, mostly around and above them like a drone. Non-planar points fill
+    a 0.5 m box, planar ones a 0.5 m square facing the camera, tilted by up to 30 deg. The
+    reference pose is the camera moved around the landmark by `offset_deg`, still looking
+    at it: rotation error = offset, centre shift = 2 d sin(offset / 2)."""
+    while True:
+        d = rng.uniform(1.5, 2.5)
+        c = random_unit(rng)
+        c[2] = abs(c[2]) * 0.7
+        c = c / np.linalg.norm(c) * d
+        X = _facing_square(rng, n, c / d) if planar else rng.uniform(-0.25, 0.25, (n, 3))
+        truth = look_at(c, rng.normal(scale=0.05, size=3))
+        if np.all(truth.transform(X)[:, 2] > 0.3):
+            u = cam.project(X, truth)
+            if np.all((u > 0) & (u < [cam.width, cam.height])):
+                break
+    Q = rodrigues(random_unit(rng) * math.radians(offset_deg))
+    return X, truth, Pose.from_center(Q @ truth.R_wc, Q @ truth.center)
+
+
+def _facing_square(rng: np.random.Generator, n: int, towards: np.ndarray) -> np.ndarray:
+    """n points on a 0.5 m square through the origin whose normal is the unit vector
+    `towards` tilted by an angle drawn from 0-30 deg."""
+    tilt = np.radians(rng.uniform(0.0, 30.0))
+    a = random_unit(rng)
+    a -= a.dot(towards) * towards
+    a /= np.linalg.norm(a)
+    nrm = rodrigues(a * tilt) @ towards
+    e1 = np.cross(nrm, random_unit(rng))
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(nrm, e1)
+    uv = rng.uniform(-0.25, 0.25, (n, 2))
+    return uv[:, :1] * e1 + uv[:, 1:] * e2

@@ -15,43 +15,16 @@ import pytest
 
 from mirage_cli import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from mirage_cli.camera import Camera
-from mirage_cli.pose import Pose, look_at, rodrigues, rotvec
+from mirage_cli.pose import Pose, rotvec
 from mirage_cli.solver import cramer_rao_covariance
+from mirage_cli.synth import pnp_scene
 
 CAM = Camera.from_params(1280, 720, 1000.0)
 
 
-def _unit(rng):
-    v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
-
-
 def scene(rng, n, planar=False, offset_deg=15.0, cam=CAM):
-    """Points near the origin, a camera 1.5-2.5 m away looking at them, and a reference
-    pose: the camera moved around the landmark by offset_deg (rotation = offset)."""
-    while True:
-        d = rng.uniform(1.5, 2.5)
-        c = _unit(rng)
-        c[2] = abs(c[2]) * 0.7
-        c = c / np.linalg.norm(c) * d
-        if planar:
-            tilt = rodrigues(_unit(rng) * math.radians(rng.uniform(0, 30)))
-            nrm = tilt @ (c / d)  # facing the camera, tilted up to 30 deg
-            e1 = np.cross(nrm, _unit(rng))
-            e1 /= np.linalg.norm(e1)
-            e2 = np.cross(nrm, e1)
-            uv = rng.uniform(-0.25, 0.25, (n, 2))
-            X = uv[:, :1] * e1 + uv[:, 1:] * e2
-        else:
-            X = rng.uniform(-0.25, 0.25, (n, 3))
-        truth = look_at(c, rng.normal(scale=0.05, size=3))
-        if np.all(truth.transform(X)[:, 2] > 0.3):
-            u = cam.project(X, truth)
-            if np.all((u > 0) & (u < [cam.width, cam.height])):
-                break
-    Q = rodrigues(_unit(rng) * math.radians(offset_deg))
-    ref = Pose.from_center(Q @ truth.R_wc, Q @ truth.center)
-    return X, truth, ref
+    """Points, true pose and a reference pose offset_deg off (the benchmark's scenes)."""
+    return pnp_scene(rng, n, cam, planar, offset_deg)
 
 
 def errs(est: Pose, truth: Pose):
