@@ -8,7 +8,7 @@ Pure core: builds scenes, poses and images in memory; `synth_cli` writes the fil
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -226,13 +226,7 @@ def pole(seed: int = 0, spec: dict = POLE) -> Cylinder:
 
 def add_occluder(scene: Scene, surface) -> Scene:
     """The scene with one more surface in front of the landmark (markers unchanged)."""
-    return Scene(
-        list(scene.surfaces) + [surface],
-        scene.sky_top,
-        scene.sky_horizon,
-        scene.markers,
-        scene.marker_normals,
-    )
+    return replace(scene, surfaces=[*scene.surfaces, surface])
 
 
 def landmark_surface_samples(step: float = 0.02) -> np.ndarray:
@@ -511,13 +505,7 @@ def add_ground_board(scene: Scene, board: Board = GROUND_BOARD) -> Scene:
         ground_board_image(board, texel),
         0.9,
     )
-    return Scene(
-        list(scene.surfaces) + [rect],
-        scene.sky_top,
-        scene.sky_horizon,
-        scene.markers,
-        scene.marker_normals,
-    )
+    return replace(scene, surfaces=[*scene.surfaces, rect])
 
 
 # --------------------------------------------------------------------------------------
