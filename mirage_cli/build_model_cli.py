@@ -16,6 +16,7 @@ from .build_model import (
     views_from_inputs,
 )
 from .camera import Camera
+from .cli_options import FILE, camera_option, file_option, inputs_argument, output_option, shown
 from .config import default_of
 from .errors import InputError
 from .features import DETECTORS, DetectorSettings
@@ -59,69 +60,43 @@ class _Stages:
 
 
 @click.command("build-model")
-@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
-@click.option(
-    "--camera",
-    "camera_path",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Camera YAML (from mirage calibrate).",
-)
-@click.option(
+@inputs_argument()
+@camera_option("Camera YAML (from mirage calibrate).", required=True)
+@file_option(
     "--poses",
     "poses_path",
-    type=click.Path(dir_okay=False),
     help="Pose CSV: one row per image (frame = file name) or video frame (frame = index).",
 )
-@click.option(
+@file_option(
     "--board",
     "board_path",
-    type=click.Path(dir_okay=False),
     help="Board YAML: a ChArUco / ArUco grid board in view gives each pose and defines W.",
 )
-@click.option(
-    "-o",
-    "--output",
-    default="landmark.mirage",
-    show_default=True,
-    type=click.Path(dir_okay=False),
-    help="Model file to write.",
-)
-@click.option(
+@output_option("landmark.mirage", "Model file to write.")
+@shown(
     "--spacing-deg",
     type=FiniteFloat(1, 90),
     default=BuildSettings.spacing_deg,
-    show_default=True,
     help="One keyframe per this much azimuth (per elevation band).",
 )
-@click.option(
-    "--detector", type=click.Choice(DETECTORS), default=DetectorSettings.name, show_default=True
-)
-@click.option(
-    "--nfeatures",
-    type=BoundedInt(min=50),
-    default=DetectorSettings.nfeatures,
-    show_default=True,
-)
-@click.option(
+@shown("--detector", type=click.Choice(DETECTORS), default=DetectorSettings.name)
+@shown("--nfeatures", type=BoundedInt(min=50), default=DetectorSettings.nfeatures)
+@shown(
     "--roi",
     default=default_of(BuildSettings, "roi").kind,
-    show_default=True,
     help="Volume of interest: auto | none | R,ZMIN,ZMAX (cylinder about the origin) | "
     "XMIN,XMAX,YMIN,YMAX,ZMIN,ZMAX (box), metres.",
 )
-@click.option(
+@shown(
     "--max-reproj-px",
     type=FiniteFloat(min=0.1),
     default=BuildSettings.max_reproj_px,
-    show_default=True,
     help="Keep points that reproject within this in every view.",
 )
-@click.option(
+@shown(
     "--min-angle-deg",
     type=FiniteFloat(min=0, max=90),
     default=BuildSettings.min_angle_deg,
-    show_default=True,
     help="Minimum triangulation angle.",
 )
 def build_model_cmd(
@@ -211,12 +186,8 @@ def save_model(res, output, source: dict, t0: float) -> None:
 
 
 @click.command("inspect")
-@click.argument("model_path", metavar="MODEL", type=click.Path(dir_okay=False))
-@click.option(
-    "--plot",
-    type=click.Path(dir_okay=False),
-    help="Write a top view (PNG) of the keyframes and 3D points.",
-)
+@click.argument("model_path", metavar="MODEL", type=FILE)
+@file_option("--plot", help="Write a top view (PNG) of the keyframes and 3D points.")
 def inspect_cmd(model_path, plot):
     """Print a landmark model's summary; optionally plot it from above."""
     refuse_overwrite({"--plot": plot}, {"MODEL": model_path})

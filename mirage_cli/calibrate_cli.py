@@ -9,6 +9,7 @@ from .boards import Board, parse_size
 from .calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
+from .cli_options import file_option, inputs_argument, output_option, shown
 from .config import default_of
 from .fileio import check_writable, refuse_overwrite
 from .frames import FrameSource, resolve_inputs
@@ -33,95 +34,61 @@ def _positive(ctx, param, value):
     return value
 
 
+def _positive_option(*decls: str, **kw):
+    """A number that must be > 0 when given."""
+    return click.option(*decls, type=FiniteFloat(), callback=_positive, **kw)
+
+
 @click.command("calibrate")
-@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...")
+@inputs_argument()
 @click.option(
     "--board",
     required=True,
     callback=parse_board,
     help="Chessboard: inner corners COLSxROWS (e.g. 9x6). ChArUco: squares.",
 )
-@click.option(
-    "--square",
-    type=FiniteFloat(),
-    required=True,
-    callback=_positive,
-    help="Square side in metres (e.g. 0.025).",
-)
-@click.option(
-    "-o",
-    "--output",
-    default="camera.yaml",
-    show_default=True,
-    type=click.Path(dir_okay=False),
-    help="Camera YAML to write.",
-)
-@click.option(
-    "--pattern",
-    type=click.Choice(["chessboard", "charuco"]),
-    default="chessboard",
-    show_default=True,
-)
-@click.option(
-    "--marker",
-    type=FiniteFloat(),
-    default=None,
-    callback=_positive,
-    help="ChArUco marker side in metres [default: 0.75 x square].",
-)
-@click.option(
-    "--dictionary", default="DICT_5X5_100", show_default=True, help="ChArUco ArUco dictionary."
-)
+@_positive_option("--square", required=True, help="Square side in metres (e.g. 0.025).")
+@output_option("camera.yaml", "Camera YAML to write.")
+@shown("--pattern", type=click.Choice(["chessboard", "charuco"]), default="chessboard")
+@_positive_option("--marker", help="ChArUco marker side in metres [default: 0.75 x square].")
+@shown("--dictionary", default="DICT_5X5_100", help="ChArUco ArUco dictionary.")
 @click.option(
     "--legacy-pattern",
     is_flag=True,
     help="ChArUco board made with OpenCV < 4.6 (even number of rows).",
 )
-@click.option(
+@shown(
     "--every",
     type=BoundedInt(min=1),
     default=default_of(detect_video, "every"),
-    show_default=True,
     help="Video: look at every K-th frame.",
 )
-@click.option(
+@shown(
     "--min-motion",
     type=FiniteFloat(min=0),
     default=default_of(detect_video, "min_motion_px"),
-    show_default=True,
     help="Video: skip views whose corners moved less than this (px).",
 )
-@click.option(
+@shown(
     "--model",
     type=click.Choice(["5", "8"]),
     default=str(CalibOptions.model),
-    show_default=True,
     help="Distortion coefficients: 5 (k1 k2 p1 p2 k3) or 8 (rational).",
 )
 @click.option("--fix-aspect", is_flag=True, help="Estimate one focal length (fx = fy).")
 @click.option("--fix-principal-point", is_flag=True, help="Keep cx, cy at the image centre.")
 @click.option("--zero-tangent", is_flag=True, help="Fix p1 = p2 = 0.")
-@click.option(
+@_positive_option(
     "--max-view-error",
-    type=FiniteFloat(),
-    default=None,
-    callback=_positive,
     help="Reject views with RMS above this (px) [default: > max(3x median, median + 0.5 px)].",
 )
-@click.option(
+@_positive_option(
     "--reject-factor",
-    type=FiniteFloat(),
     default=CalibOptions.reject_factor,
     show_default=True,
-    callback=_positive,
     help="Outlier views: RMS above this x median.",
 )
-@click.option(
-    "--report",
-    type=click.Path(dir_okay=False),
-    default=None,
-    help="Write a PNG with corner coverage and per-view errors.",
-)
+@file_option("--report", default=None, help="Write a PNG with corner coverage and per-view errors.")
 @click.option(
     "--subpix-window",
     type=BoundedInt(min=1),

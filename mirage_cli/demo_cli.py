@@ -9,6 +9,7 @@ import click
 import yaml
 
 from . import ui
+from .cli_options import FOLDER, shown
 from .errors import InputError
 from .fileio import atomic_write, copy_file, ensure_dir
 
@@ -73,18 +74,17 @@ def project_config(overlay: bool) -> dict:
 
 
 @click.command("demo")
-@click.option(
+@shown(
     "--out",
     "out",
     default="demo_out",
-    show_default=True,
-    type=click.Path(file_okay=False),
+    type=FOLDER,
     help="Folder to write everything into (becomes a project folder with mirage.yaml).",
 )
 @click.option(
     "--sample-data",
     "sample_data",
-    type=click.Path(file_okay=False),
+    type=FOLDER,
     help="Sample data folder [default: sample_data/ of the repository].",
 )
 @click.option("--overlay", is_flag=True, help="Also write overlay.mp4 from track (slower).")

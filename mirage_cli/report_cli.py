@@ -7,6 +7,7 @@ import numpy as np
 import yaml
 
 from . import ui
+from .cli_options import FILE, file_option, output_option
 from .fileio import atomic_write, check_writable, refuse_overwrite
 from .path import load_path
 from .plotting import REPORT_DPI, report_figure, save_png
@@ -54,30 +55,21 @@ def summary_lines(s: dict) -> list[str]:
 
 
 @click.command("report")
-@click.argument("poses", type=click.Path(dir_okay=False))
-@click.option(
+@click.argument("poses", type=FILE)
+@file_option(
     "--path",
     "path",
     required=True,
-    type=click.Path(dir_okay=False),
     help="Desired path: YAML (type: circle | polyline) or waypoint CSV x_m,y_m,z_m[,time_s].",
 )
-@click.option(
+@file_option(
     "--truth",
-    type=click.Path(dir_okay=False),
     help="Ground truth: pose CSV (joined by frame) or TUM file (nearest time within 10 ms); "
     "adds position and rotation error.",
 )
-@click.option(
-    "-o",
-    "--output",
-    default="report.csv",
-    show_default=True,
-    type=click.Path(dir_okay=False),
-    help="Per-frame error CSV to write.",
-)
-@click.option("--summary", type=click.Path(dir_okay=False), help="Also write the summary YAML.")
-@click.option("--plot", type=click.Path(dir_okay=False), help="Also write a PNG plot.")
+@output_option("report.csv", "Per-frame error CSV to write.")
+@file_option("--summary", help="Also write the summary YAML.")
+@file_option("--plot", help="Also write a PNG plot.")
 def report_cmd(poses, path, truth, output, summary, plot):
     """Path-following errors of a pose CSV against the desired path (and the truth).
 

@@ -14,6 +14,7 @@ import yaml
 from . import signals, synth, ui
 from .calibrate_cli import parse_board
 from .camera import Camera
+from .cli_options import FOLDER, camera_option, shown
 from .config import default_of
 from .errors import InputError, OutputError
 from .fileio import (
@@ -64,89 +65,67 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 
 
 @click.command("synth")
-@click.argument("outdir", type=click.Path(file_okay=False))
-@click.option("--seed", type=BoundedInt(min=0), default=0, show_default=True, help="Random seed.")
-@click.option(
-    "--camera",
-    "camera_path",
-    type=click.Path(dir_okay=False),
-    help="Camera YAML to render with (default: a 640x480 webcam with distortion).",
-)
+@click.argument("outdir", type=FOLDER)
+@shown("--seed", type=BoundedInt(min=0), default=0, help="Random seed.")
+@camera_option("Camera YAML to render with (default: a 640x480 webcam with distortion).")
 @click.option("--width", type=BoundedInt(min=16), help="Image width (scales the camera).")
 @click.option("--height", type=BoundedInt(min=16), help="Image height.")
-@click.option(
+@shown(
     "--only",
     default=",".join(PARTS),
-    show_default=True,
     help="Comma-separated parts to write: calibration, keyframes, orbit.",
 )
-@click.option("--board", default="9x6", show_default=True, help="Inner corners COLSxROWS.")
-@click.option(
+@shown("--board", default="9x6", help="Inner corners COLSxROWS.")
+@shown(
     "--square",
     type=FiniteFloat(min=0, min_open=True),
     default=0.025,
-    show_default=True,
     help="Chessboard square size (m).",
 )
-@click.option("--calib-views", type=BoundedInt(min=1), default=20, show_default=True)
-@click.option(
+@shown("--calib-views", type=BoundedInt(min=1), default=20)
+@shown(
     "--keyframe-step",
     type=FiniteFloat(min=1, max=180),
     default=default_of(synth.keyframe_poses, "step_deg"),
-    show_default=True,
     help="Keyframe spacing in azimuth (deg).",
 )
-@click.option(
+@shown(
     "--heights",
     default=",".join(map(str, default_of(synth.keyframe_poses, "heights"))),
-    show_default=True,
     help="Keyframe camera heights (m), comma-separated.",
 )
-@click.option(
+@shown(
     "--radius",
     type=FiniteFloat(min=0.8),
     default=default_of(synth.keyframe_poses, "radius"),
-    show_default=True,
     help="Keyframe circle radius (m).",
 )
-@click.option(
+@shown(
     "--duration",
     type=FiniteFloat(min=0.1),
     default=synth.OrbitPath.duration_s,
-    show_default=True,
     help="Orbit video length (s).",
 )
-@click.option("--fps", type=FiniteFloat(min=1), default=30.0, show_default=True)
-@click.option(
-    "--noise",
-    type=FiniteFloat(min=0),
-    default=1.5,
-    show_default=True,
-    help="Sensor noise sigma (grey levels).",
-)
-@click.option(
+@shown("--fps", type=FiniteFloat(min=1), default=30.0)
+@shown("--noise", type=FiniteFloat(min=0), default=1.5, help="Sensor noise sigma (grey levels).")
+@shown(
     "--motion-blur",
     type=BoundedInt(min=1),
     default=1,
-    show_default=True,
     help="Sub-frame renders averaged over the exposure, centred on the frame's time (1 = off).",
 )
-@click.option(
+@shown(
     "--exposure",
     type=click.FloatRange(min=0, max=1, min_open=True),
     default=0.5,
-    show_default=True,
     help="Shutter time as a share of the frame interval (the span --motion-blur averages).",
 )
-@click.option(
+@shown(
     "--jpeg-quality",
     type=BoundedInt(50, 100),
     default=default_of(synth.encode_jpeg, "quality"),
-    show_default=True,
 )
-@click.option(
-    "--jobs", type=BoundedInt(min=1), default=2, show_default=True, help="Render processes."
-)
+@shown("--jobs", type=BoundedInt(min=1), default=2, help="Render processes.")
 @click.option(
     "--ground-board",
     is_flag=True,
@@ -172,25 +151,22 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     "azimuth 60 deg, 0.95 m from it, and passes in front of the landmark during the orbit. "
     "In the orbit video only (not in the keyframes); landmark_visible counts it.",
 )
-@click.option(
+@shown(
     "--video-radius",
     type=click.FloatRange(min=0.8),
     default=default_of(synth.OrbitPath, "radius_m"),
-    show_default=True,
     help="Orbit video circle radius (m); the keyframes keep --radius.",
 )
-@click.option(
+@shown(
     "--aa",
     type=click.IntRange(1, 4),
     default=default_of(Renderer, "aa"),
-    show_default=True,
     help="Rays per pixel side (anti-aliasing); 1 renders about 4x faster.",
 )
-@click.option(
+@shown(
     "--turns",
     type=click.FloatRange(min=0, min_open=True),
     default=default_of(synth.OrbitPath, "turns"),
-    show_default=True,
     help="Orbit video: turns around the landmark over --duration (sets the speed).",
 )
 @click.option(
