@@ -12,6 +12,7 @@ import numpy as np
 
 from . import refine, signals, track, ui
 from .camera import Camera
+from .cli_options import camera_option, file_option, inputs_argument, output_option, shown
 from .errors import InputError, OutputError
 from .fileio import (
     atomic_path,
@@ -33,31 +34,11 @@ from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
 # command
 # --------------------------------------------------------------------------------------
 @click.command("track")
-@click.argument("video", nargs=-1, required=True, metavar="VIDEO")
-@click.option(
-    "--model",
-    "model_path",
-    required=True,
-    type=click.Path(dir_okay=False),
-    help="Landmark model from build-model.",
-)
-@click.option(
-    "--camera",
-    "camera_path",
-    type=click.Path(dir_okay=False),
-    help="Camera YAML (default: the camera stored in the model).",
-)
-@click.option(
-    "-o",
-    "--output",
-    default="poses.csv",
-    show_default=True,
-    type=click.Path(dir_okay=False),
-    help="Pose CSV to write.",
-)
-@click.option(
-    "--method", type=click.Choice(METHODS), default=TrackSettings.method, show_default=True
-)
+@inputs_argument("video", metavar="VIDEO")
+@file_option("--model", "model_path", required=True, help="Landmark model from build-model.")
+@camera_option("Camera YAML (default: the camera stored in the model).")
+@output_option("poses.csv", "Pose CSV to write.")
+@shown("--method", type=click.Choice(METHODS), default=TrackSettings.method)
 @click.option(
     "--start",
     type=FRAME_OR_TIME,
@@ -71,48 +52,25 @@ from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
     default=None,
     help="Images: frame rate, time_s = index / FPS [default: times in the file names, if any].",
 )
-@click.option(
-    "--every",
-    type=BoundedInt(min=1),
-    default=1,
-    show_default=True,
-    help="Process every N-th frame.",
-)
-@click.option(
+@shown("--every", type=BoundedInt(min=1), default=1, help="Process every N-th frame.")
+@shown(
     "--redetect-every",
     type=BoundedInt(min=1),
     default=TrackSettings.redetect_every,
-    show_default=True,
     help="Full feature detection at least every N frames (optical flow between).",
 )
 @click.option("--no-flow", is_flag=True, help="Detect and match in every frame (slower).")
-@click.option(
-    "--min-inliers",
-    type=BoundedInt(min=4),
-    default=TrackSettings.min_inliers,
-    show_default=True,
-)
-@click.option(
+@shown("--min-inliers", type=BoundedInt(min=4), default=TrackSettings.min_inliers)
+@shown(
     "--max-rmse",
     type=FiniteFloat(min=0, min_open=True),
     default=TrackSettings.max_rmse_px,
-    show_default=True,
     help="Largest reprojection RMS (px) of an ok frame.",
 )
-@click.option(
-    "--overlay",
-    type=click.Path(dir_okay=False),
-    help="Write a video with the landmark axes, inliers and status drawn.",
-)
-@click.option(
-    "--tum",
-    type=click.Path(dir_okay=False),
-    help="Also write a TUM trajectory (time x y z qx qy qz qw) for evo & co.",
-)
-@click.option(
-    "--kitti",
-    type=click.Path(dir_okay=False),
-    help="Also write KITTI poses (3x4 camera-to-world matrix, 12 numbers a line).",
+@file_option("--overlay", help="Write a video with the landmark axes, inliers and status drawn.")
+@file_option("--tum", help="Also write a TUM trajectory (time x y z qx qy qz qw) for evo & co.")
+@file_option(
+    "--kitti", help="Also write KITTI poses (3x4 camera-to-world matrix, 12 numbers a line)."
 )
 def track_cmd(
     video,
