@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from . import ui
-from .boards import Board, parse_size
+from .boards import MARKER_FRACTION, Board, parse_size
 from .calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
@@ -49,9 +49,15 @@ def _positive_option(*decls: str, **kw):
 )
 @_positive_option("--square", required=True, help="Square side in metres (e.g. 0.025).")
 @output_option("camera.yaml", "Camera YAML to write.")
-@shown("--pattern", type=click.Choice(["chessboard", "charuco"]), default="chessboard")
-@_positive_option("--marker", help="ChArUco marker side in metres [default: 0.75 x square].")
-@shown("--dictionary", default="DICT_5X5_100", help="ChArUco ArUco dictionary.")
+@shown(
+    "--pattern",
+    type=click.Choice(["chessboard", "charuco"]),
+    default=default_of(Board, "pattern"),
+)
+@_positive_option(
+    "--marker", help=f"ChArUco marker side in metres [default: {MARKER_FRACTION:g} x square]."
+)
+@shown("--dictionary", default=default_of(Board, "dictionary"), help="ChArUco ArUco dictionary.")
 @click.option(
     "--legacy-pattern",
     is_flag=True,

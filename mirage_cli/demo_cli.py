@@ -12,6 +12,7 @@ from . import ui
 from .cli_options import FOLDER, shown
 from .errors import InputError
 from .fileio import atomic_write, copy_file, ensure_dir
+from .synth import CALIB_BOARD, CALIB_SQUARE_M
 
 # the package is installed editable from the repository, which holds sample_data/
 DEFAULT_SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
@@ -23,7 +24,7 @@ NEEDED = [
     "orbit_truth.csv",
     "desired_path.yaml",
 ]
-BOARD, SQUARE = (9, 6), 0.025
+BOARD, SQUARE = CALIB_BOARD, CALIB_SQUARE_M  # the board the sample data was rendered with
 
 
 def find_sample_data(folder: Path | None) -> Path:
@@ -56,7 +57,7 @@ def project_config(overlay: bool) -> dict:
     if overlay:
         track["overlay"] = "overlay.mp4"
     return {
-        "calibrate": {"board": "9x6", "square": SQUARE, "output": "camera.yaml"},
+        "calibrate": {"board": "{}x{}".format(*BOARD), "square": SQUARE, "output": "camera.yaml"},
         "build-model": {
             "camera": "camera.yaml",
             "poses": "keyframes_poses.csv",

@@ -29,6 +29,9 @@ BOXES = {
 CYLINDER = {"center": (0.15, 0.06), "radius": 0.09, "z": (0.34, 0.62)}
 LANDMARK_BOUNDS = np.array([[-0.30, -0.21, 0.0], [0.30, 0.21, 0.62]])
 TEXEL_M = 0.001
+# The calibration chessboard of `mirage synth` (and so of the sample data, which the demo
+# calibrates from): inner corners (cols, rows) and square side.
+CALIB_BOARD, CALIB_SQUARE_M = (9, 6), 0.025
 
 
 def default_camera() -> Camera:

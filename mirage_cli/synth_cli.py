@@ -75,11 +75,11 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     default=",".join(PARTS),
     help="Comma-separated parts to write: calibration, keyframes, orbit.",
 )
-@shown("--board", default="9x6", help="Inner corners COLSxROWS.")
+@shown("--board", default="{}x{}".format(*synth.CALIB_BOARD), help="Inner corners COLSxROWS.")
 @shown(
     "--square",
     type=FiniteFloat(min=0, min_open=True),
-    default=0.025,
+    default=synth.CALIB_SQUARE_M,
     help="Chessboard square size (m).",
 )
 @shown("--calib-views", type=BoundedInt(min=1), default=20)
@@ -194,15 +194,15 @@ def synth_cmd(
     motion_blur,
     jpeg_quality,
     jobs,
-    ground_board=False,
-    exposure=0.5,
-    floor_tiles=None,
-    lookalike=False,
-    pole=False,
-    video_radius=1.6,
-    look_away=None,
-    turns=1.3,
-    aa=2,
+    ground_board,
+    exposure,
+    floor_tiles,
+    lookalike,
+    pole,
+    video_radius,
+    look_away,
+    turns,
+    aa,
 ):
     """Render a synthetic data set with exact ground truth into OUTDIR.
 
