@@ -83,13 +83,14 @@ def test_matching_camera_scales_or_refuses():
 
 
 def test_track_image_times_agree_in_csv_and_tum(sample_model, tmp_path, mirage):
-    """Timestamped names and --fps give the same times in the pose CSV and the TUM file."""
+    """Timestamped names and --fps give the same times in the pose CSV and the TUM file,
+    and the overlay video plays at their rate, one frame each."""
     names = [f"{1699999999.0 + k / 30:.6f}.png" for k in range(6)]
     orbit_frames(tmp_path / "f", names, first=60)
     for extra, t0, dt in [([], 1699999999.0, 1 / 30), (["--fps", "10"], 0.0, 0.1)]:
-        csv, tum = tmp_path / "p.csv", tmp_path / "p.tum"
+        csv, tum, ov = tmp_path / "p.csv", tmp_path / "p.tum", tmp_path / "ov.mp4"
         args = ["track", tmp_path / "f", "--model", sample_model, "-o", csv, "--tum", tum]
-        p = mirage(*args, *extra)
+        p = mirage(*args, "--overlay", ov, *extra)
         assert p.returncode == 0, p.stderr
         est = pd.read_csv(csv)
         assert est["frame"].tolist() == names
@@ -97,5 +98,9 @@ def test_track_image_times_agree_in_csv_and_tum(sample_model, tmp_path, mirage):
         assert (est["status"] == "ok").all()
         t = np.loadtxt(tum)
         assert t[:, 0] == pytest.approx(est["time_s"].to_numpy(), abs=1e-6)
+        cap = cv2.VideoCapture(str(ov))
+        fps, n = cap.get(cv2.CAP_PROP_FPS), int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        cap.release()
+        assert fps == pytest.approx(1 / dt, rel=1e-3) and n == len(names)
     p = mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--fps", "5")
     assert_one_line_error(p, 2, "--fps")
