@@ -86,7 +86,8 @@ def _positive_option(*decls: str, **kw):
 @click.option("--zero-tangent", is_flag=True, help="Fix p1 = p2 = 0.")
 @_positive_option(
     "--max-view-error",
-    help="Reject views with RMS above this (px) [default: > max(3x median, median + 0.5 px)].",
+    help="Reject views with RMS above this (px) [default: > max("
+    f"{CalibOptions.reject_factor:g}x median, median + {CalibOptions.reject_margin_px:g} px)].",
 )
 @_positive_option(
     "--reject-factor",
