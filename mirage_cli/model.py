@@ -372,6 +372,40 @@ def point_twins(model: LandmarkModel, separation_m: float = 0.05, k: int = 4) ->
     return twins
 
 
+def ground_points(
+    points: np.ndarray, tol_m: float = 0.03, min_share: float = 0.03, max_below: float = 0.05
+) -> np.ndarray:
+    """Per 3D point: True when it lies on the ground the landmark stands on.
+
+    The ground is seen around the landmark from every side, so its texture (tiles, grass,
+    asphalt) can give a pose without the landmark in view, often a wrong one a period
+    away: a pose must rest on the landmark's own points. W is Z up (brief, section 3), so
+    the ground is the lowest horizontal layer (+-`tol_m`, which absorbs the depth error
+    of far floor points) holding at least `min_share` of the points, with almost nothing
+    (`max_below`) under it. A model that is nearly all one layer (a flat landmark) has no
+    separate ground: nothing is flagged.
+    """
+    P = np.asarray(points, float).reshape(-1, 3)
+    ground = np.zeros(len(P), bool)
+    if len(P) < 20:
+        return ground
+    z = np.sort(P[:, 2])
+    # points within +-tol of each candidate height, by two binary searches (no loop)
+    n_in = np.searchsorted(z, z + tol_m, "right") - np.searchsorted(z, z - tol_m, "left")
+    dense = np.flatnonzero(n_in >= min_share * len(z))
+    if not len(dense):
+        return ground
+    lowest = dense[0]  # the lowest dense layer; then its densest height within tol
+    near = np.flatnonzero(np.abs(z - z[lowest]) <= tol_m)
+    best = near[np.argmax(n_in[near])]
+    h = float(np.median(z[np.abs(z - z[best]) <= tol_m]))
+    on = np.abs(P[:, 2] - h) <= tol_m
+    share, below = on.mean(), np.mean(P[:, 2] < h - tol_m)
+    if share < min_share or share > 0.9 or below > max_below:
+        return ground
+    return on
+
+
 def observations_from_keyframes(keyframes: list[Keyframe]) -> dict[str, np.ndarray]:
     pts, kfi, feat = [], [], []
     for i, kf in enumerate(keyframes):

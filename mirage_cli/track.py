@@ -20,7 +20,7 @@ import numpy as np
 from .camera import Camera
 from .features import detect, guided_match, make_detector
 from .frames import Frame
-from .model import LandmarkModel, point_twins
+from .model import LandmarkModel, ground_points, point_twins
 from .pose import Pose
 from .signals import through_compiled_code
 from .solver import PoseEstimate, RansacOptions, RefineOptions, solve_pose
@@ -33,12 +33,17 @@ class TrackSettings:
     redetect_every: int = 5  # frames between full detections while flow holds
     min_inliers: int = 15  # fewer consistent points: lost
     min_inlier_ratio: float = 0.25  # of the matches, at detection
+    min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
     max_rmse_px: float = 2.0
     ransac_px: float = 3.0
+    huber_px: float = 0.5  # Mirage-S's Huber floor: residuals beyond max(this, 2.5 sigma)
+    # weigh less (a model point or keypoint that is off by a pixel pulls the pose less)
     ratio: float = 0.8
     flow: bool = True
     min_flow_points: int = 30
     flow_fb_px: float = 0.7  # forward-backward consistency of Lucas-Kanade
+    flow_window_px: int = 7  # Lucas-Kanade window: small, so it stays on one surface
+    flow_keep: float = 0.5  # fewer of the detected points still followed: detect afresh
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
     local_keyframes: int = 4  # keyframes near the previous pose to match against
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
@@ -74,7 +79,11 @@ def unambiguous_pose(
     """
     if unique.sum() < s.min_inliers:
         return Status.LOST
-    kw = dict(method=s.method, ransac=RansacOptions(threshold_px=s.ransac_px, seed=s.seed))
+    kw = dict(
+        method=s.method,
+        ransac=RansacOptions(threshold_px=s.ransac_px, seed=s.seed),
+        refine=RefineOptions(huber_px=s.huber_px),
+    )
     Xu, uvu = X[unique], uv[unique]
     first = solve_pose(Xu, uvu, camera, reference, **kw)
     if not first.success:
@@ -101,7 +110,7 @@ def unambiguous_pose(
         return first
     final = solve_pose(
         X[inl], uv[inl], camera, first.pose, method=s.method,
-        refine=RefineOptions(reject_px=s.ransac_px),
+        refine=RefineOptions(reject_px=s.ransac_px, huber_px=s.huber_px),
     )  # fmt: skip
     if not final.success:
         return first
@@ -135,8 +144,15 @@ class Tracker:
         self.keyframe = -1
         self.track_px: np.ndarray | None = None  # (N,2) float32 inliers in prev frame
         self.track_X: np.ndarray | None = None  # (N,3) their model points
+        self.track_land: np.ndarray | None = None  # (N,) bool: on the landmark
+        # flow follows each point from the frame where it was detected (the anchor), so
+        # its error does not add up from frame to frame
+        self.anchor_gray: np.ndarray | None = None
+        self.anchor_px: np.ndarray | None = None  # (N,2) float32, rows of track_px
+        self.anchor_n = 0  # points detected in the anchor
         self._kf_cache: dict[int, tuple] = {}
         self.twins = point_twins(model)
+        self.on_landmark = ~ground_points(model.points)
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
@@ -152,6 +168,9 @@ class Tracker:
             res = self._flow(gray)
         if res is None or not res.ok:
             res = self._detect(gray)
+            if res.ok:
+                self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
+                self.anchor_n = len(self.anchor_px)
         self.prev_gray = gray
         if res.ok:
             if self.prev_pose is not None and self.lost_run == 0:
@@ -162,7 +181,7 @@ class Tracker:
             self.lost_run = 0
         else:
             self.lost_run += 1
-            self.track_px = self.track_X = None
+            self.track_px = self.track_X = self.track_land = None
             self.velocity = None
             if self.lost_run > 3:
                 self.prev_pose = None  # too long: recognise globally again
@@ -179,26 +198,35 @@ class Tracker:
 
     # ------------------------------------------------------------------------------------
     def _flow(self, gray: np.ndarray) -> FrameRecord | None:
-        p0 = self.track_px.reshape(-1, 1, 2)
+        a0 = self.anchor_px.reshape(-1, 1, 2)
         lk = dict(
-            winSize=(15, 15),
+            winSize=(self.s.flow_window_px, self.s.flow_window_px),
             maxLevel=3,
             criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
-        try:
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(self.prev_gray, gray, p0, None, **lk)
-            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.prev_gray, p1, None, **lk)
+        # start each point where the predicted pose puts it (large motions stay within the
+        # small window's reach), or where it was in the previous frame
+        pred = self._predicted()
+        guess = self.track_px
+        if self.velocity is not None and np.all(pred.transform(self.track_X)[:, 2] > 1e-3):
+            guess = self.camera.project(self.track_X, pred).astype(np.float32)
+        try:  # from the anchor image: the error does not add up from frame to frame
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(
+                self.anchor_gray, gray, a0, guess.reshape(-1, 1, 2).copy(), **lk
+            )
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.anchor_gray, p1, a0.copy(), **lk)
         except cv2.error:
             return None
         p1, p0r = p1.reshape(-1, 2), p0r.reshape(-1, 2)
-        fb = np.linalg.norm(p0r - self.track_px, axis=1)
+        fb = np.linalg.norm(p0r - self.anchor_px, axis=1)
         h, w = gray.shape[:2]
         good = (
             (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.s.flow_fb_px)
             & (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
         )  # fmt: skip
-        if good.sum() < self.s.min_flow_points:
-            return None
+        if good.sum() < max(self.s.min_flow_points, self.s.flow_keep * self.anchor_n):
+            return None  # the flow has weakened: detect afresh
         X, uv = self.track_X[good], p1[good]
         est = solve_pose(
             X,
@@ -206,14 +234,17 @@ class Tracker:
             self.camera,
             reference_pose=self.prev_pose,
             method=self.s.method,
-            refine=RefineOptions(reject_px=self.s.ransac_px),
+            refine=RefineOptions(reject_px=self.s.ransac_px, huber_px=self.s.huber_px),
         )
-        res = self._gate(est, len(uv), "flow", check_jump=True)
+        land = self.track_land[good]
+        res = self._gate(est, len(uv), "flow", check_jump=True, on_landmark=land)
         if res.ok and est.rmse_px > self.s.flow_max_rmse_px:
             return None  # the flow has drifted or the motion was too large: detect afresh
         if res.ok:
             self.since_detect += 1
             self.track_px, self.track_X = uv[est.inliers].astype(np.float32), X[est.inliers]
+            self.track_land = land[est.inliers]
+            self.anchor_px = self.anchor_px[good][est.inliers]
             res.inlier_px = self.track_px
         return res
 
@@ -250,9 +281,11 @@ class Tracker:
             reference_pose=pred,
             method=self.s.method,
             ransac=RansacOptions(threshold_px=self.s.ransac_px, seed=self.s.seed),
+            refine=RefineOptions(huber_px=self.s.huber_px),
         )
-        res = self._gate(est, len(uv), "detect", check_jump=True)
-        return self._accept(res, est, uv, X, kf)
+        land = self.on_landmark[pid_all[ci]]
+        res = self._gate(est, len(uv), "detect", check_jump=True, on_landmark=land)
+        return self._accept(res, est, uv, X, kf, land)
 
     def _relocalise(self, kps, desc) -> FrameRecord:
         """Lost: recognise, match, and accept a pose only when the evidence is unambiguous."""
@@ -265,7 +298,9 @@ class Tracker:
         anywhere = np.zeros((len(X_all), 2))
         qi, ti = guided_match(kps, desc, anywhere, d_all, pid_all, np.inf, self.s.ratio)
         uv, X = kps[qi].astype(np.float64), X_all[ti]
-        unique = ~self.twins[pid_all[ti]]  # matches to repeated texture do not vote
+        # matches to repeated texture or to the ground do not vote
+        land = self.on_landmark[pid_all[ti]]
+        unique = ~self.twins[pid_all[ti]] & land
         lost = FrameRecord(Status.LOST, matches=len(qi), mode="relocalise")
         if unique.sum() < self.s.min_inliers:
             return lost
@@ -274,15 +309,16 @@ class Tracker:
         if isinstance(est, Status):
             lost.status = est
             return lost
-        res = self._gate(est, len(uv), "relocalise", check_jump=False)
-        return self._accept(res, est, uv, X, kf)
+        res = self._gate(est, len(uv), "relocalise", check_jump=False, on_landmark=land)
+        return self._accept(res, est, uv, X, kf, land)
 
-    def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int) -> FrameRecord:
+    def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int, land) -> FrameRecord:
         res.keyframe = self.model.keyframes[kf].name
         if res.ok:
             self.keyframe = kf
             self.track_px = uv[est.inliers].astype(np.float32)
             self.track_X = X[est.inliers]
+            self.track_land = land[est.inliers]
             res.inlier_px = self.track_px
         return res
 
@@ -315,8 +351,16 @@ class Tracker:
         k = np.sqrt(1.0 + self.model_rms_px**2 * n / (self.s.model_error_points * s2))
         return est.sigma_pos_m * k, est.sigma_rot_deg * k
 
-    def _gate(self, est: PoseEstimate, n: int, mode: str, check_jump: bool) -> FrameRecord:
-        """ok only with enough consistent inliers, a small residual, a plausible motion and
+    def _gate(
+        self,
+        est: PoseEstimate,
+        n: int,
+        mode: str,
+        check_jump: bool,
+        on_landmark: np.ndarray | None = None,
+    ) -> FrameRecord:
+        """ok only with enough consistent inliers, enough of them on the landmark itself
+        (`on_landmark`, per match; None: all are), a small residual, a plausible motion and
         an uncertainty small enough to trust (else `uncertain`)."""
         ninl = int(est.inliers.sum()) if est.success else 0
         res = FrameRecord(
@@ -332,6 +376,9 @@ class Tracker:
         res.sigma_pos_m, res.sigma_rot_deg = self._sigmas(est, ninl)
         if ninl < self.s.min_inliers or ninl < self.s.min_inlier_ratio * n:
             return res
+        n_land = ninl if on_landmark is None else int((est.inliers & on_landmark).sum())
+        if n_land < self.s.min_landmark_inliers:
+            return res  # the ground (or background) alone: the landmark is not in view
         if not est.rmse_px <= self.s.max_rmse_px:
             return res
         if est.pose.transform(np.zeros((1, 3)))[0, 2] <= 0:
