@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import importlib
 import os
 import sys
 import traceback
+from collections.abc import Mapping
 
 import click
 
@@ -24,7 +26,88 @@ _USER_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EI
                 errno.ELOOP, errno.ENAMETOOLONG}  # fmt: skip
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+# name -> (module, command object, the first paragraph of its help for `mirage --help`).
+# A command's module (and with it OpenCV, numba, pandas, ...) is imported only when that
+# command runs or shows its help, so `mirage --version` and `mirage --help` stay instant;
+# tests/test_cli.py checks the summaries against the commands' own help.
+COMMANDS = {
+    "build-model": (
+        "build_model_cli",
+        "build_model_cmd",
+        "Build a 360-degree landmark model from images (a folder or glob) or a video.",
+    ),
+    "calibrate": (
+        "calibrate_cli",
+        "calibrate",
+        "Calibrate the camera from chessboard or ChArUco images, a folder, a glob or a video.",
+    ),
+    "demo": (
+        "demo_cli",
+        "demo_cmd",
+        "Run calibrate -> build-model -> track -> report on the sample data.",
+    ),
+    "inspect": (
+        "build_model_cli",
+        "inspect_cmd",
+        "Print a landmark model's summary; optionally plot it from above.",
+    ),
+    "report": (
+        "report_cli",
+        "report_cmd",
+        "Path-following errors of a pose CSV against the desired path (and the truth).",
+    ),
+    "synth": (
+        "synth_cli",
+        "synth_cmd",
+        "Render a synthetic data set with exact ground truth into OUTDIR.",
+    ),
+    "track": (
+        "track_cli",
+        "track_cmd",
+        "Estimate the camera pose in every frame of VIDEO (a video file, or images).",
+    ),
+}
+
+
+class _LazyCommands(Mapping):
+    """The commands by name, each imported on first access (`cli.commands["track"]`)."""
+
+    def __init__(self, table: dict[str, tuple[str, str, str]]):
+        self._table = table
+        self._loaded: dict[str, click.Command] = {}
+
+    def __getitem__(self, name: str) -> click.Command:
+        if name not in self._loaded:
+            module, attr, _ = self._table[name]  # KeyError: no such command
+            self._loaded[name] = getattr(importlib.import_module(f".{module}", __package__), attr)
+        return self._loaded[name]
+
+    def __iter__(self):
+        return iter(self._table)
+
+    def __len__(self) -> int:
+        return len(self._table)
+
+
+class _LazyGroup(click.Group):
+    """A group whose `commands` import lazily and whose command list comes from the
+    table's summaries (the same text click would derive from each command's help)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, commands=_LazyCommands(COMMANDS), **kwargs)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        names = self.list_commands(ctx)
+        limit = formatter.width - 6 - max(len(n) for n in names)
+        rows = [(n, click.utils.make_default_short_help(COMMANDS[n][2], limit)) for n in names]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(
+    cls=_LazyGroup,
+    context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100},
+)
 @click.version_option(__version__, "-V", "--version", prog_name="mirage")
 @click.option(
     "--config",
@@ -47,30 +130,6 @@ def cli(ctx, config_path, verbose, quiet, debug):
     raw, src = read_config(config_path)
     ctx.default_map = check_config(raw, cli.commands, src) if src is not None else {}
     ctx.obj = {"config": ctx.default_map, "config_path": src}
-
-
-def _register() -> None:
-    """Commands are added here as they start to work (one module per stage)."""
-    from .calibrate_cli import calibrate
-    from .synth_cli import synth_cmd
-
-    cli.add_command(calibrate)
-    cli.add_command(synth_cmd)
-    from .build_model_cli import build_model_cmd, inspect_cmd
-
-    cli.add_command(build_model_cmd)
-    cli.add_command(inspect_cmd)
-    from .demo_cli import demo_cmd
-    from .report_cli import report_cmd
-
-    cli.add_command(report_cmd)
-    cli.add_command(demo_cmd)
-    from .track_cli import track_cmd
-
-    cli.add_command(track_cmd)
-
-
-_register()
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -8,8 +8,6 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import yaml
-
 from . import signals
 from .errors import EnvironmentFailure, InputError, OutputError
 
@@ -209,6 +207,8 @@ def require_file(path: str | os.PathLike, what: str = "file") -> Path:
 
 def read_yaml(path: Path, what: str):
     """Parsed YAML of a user's file; bad syntax or a binary file is one clear line."""
+    import yaml  # here, not at the top: `mirage --version` must not pay for it
+
     try:
         return yaml.safe_load(Path(path).read_text())
     except yaml.YAMLError as e:

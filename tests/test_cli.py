@@ -1,14 +1,49 @@
 """The CLI contract: version, help, config layering and one-line errors."""
 
+import subprocess
+import sys
+
+import click
+import pytest
 from conftest import assert_one_line_error
 
 from mirage_cli import __version__
+from mirage_cli.cli import COMMANDS, cli
 from mirage_cli.config import load_config
+
+HEAVY = ("cv2", "numpy", "numba", "pandas", "scipy", "matplotlib", "yaml")
 
 
 def test_version(mirage):
     p = mirage("--version")
     assert p.returncode == 0 and __version__ in p.stdout
+
+
+@pytest.mark.parametrize("args", [["--version"], ["--help"]])
+def test_version_and_help_load_no_command(args):
+    """Commands import on use (issue 15): `mirage --version` and `mirage --help` load no
+    command module, hence none of OpenCV, numba, numpy, pandas."""
+    code = (
+        "import sys\n"
+        "from mirage_cli.cli import main\n"
+        "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+        f"print(sorted(m for m in sys.modules if m.split('.')[0] in {HEAVY!r}"
+        " or m.startswith('mirage_cli.') and m.endswith('_cli')), file=sys.stderr)"
+    )
+    p = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr.strip() == "[]", p.stderr
+
+
+def test_help_lists_every_command_as_click_would():
+    """The lazy table's summaries give the very lines click derives from each command."""
+    assert set(COMMANDS) == {c.name for c in cli.commands.values()}
+    ctx = click.Context(cli, info_name="mirage")
+    for width in (50, 80, 100, 200):
+        lazy, eager = click.HelpFormatter(width=width), click.HelpFormatter(width=width)
+        cli.format_commands(ctx, lazy)
+        click.Group.format_commands(cli, ctx, eager)  # imports every command
+        assert lazy.getvalue() == eager.getvalue()
 
 
 def test_unknown_command_is_one_line(mirage):
