@@ -26,8 +26,17 @@ from .model import LandmarkModel
 from .plotting import draw_overlay
 from .solver import METHODS, warm_up
 from .track import Tracker, TrackSettings
-from .trajectory import TRACK_COLUMNS, Status, TrajectoryWriter
+from .trajectory import FORMATS, TRACK_COLUMNS, Status, TrajectoryWriter
 from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
+
+
+def also_write_options(f):
+    """`--tum FILE`, `--kitti FILE`, ...: one option per trajectory format in FORMATS that
+    declares a flag, in FORMATS order; the parameter is the format's name."""
+    flagged = [(name, fmt) for name, fmt in FORMATS.items() if fmt.flag]
+    for name, fmt in reversed(flagged):  # decorators apply bottom-up
+        f = file_option(fmt.flag, name, help=fmt.help)(f)
+    return f
 
 
 # --------------------------------------------------------------------------------------
@@ -68,10 +77,7 @@ from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
     help="Largest reprojection RMS (px) of an ok frame.",
 )
 @file_option("--overlay", help="Write a video with the landmark axes, inliers and status drawn.")
-@file_option("--tum", help="Also write a TUM trajectory (time x y z qx qy qz qw) for evo & co.")
-@file_option(
-    "--kitti", help="Also write KITTI poses (3x4 camera-to-world matrix, 12 numbers a line)."
-)
+@also_write_options
 def track_cmd(
     video,
     model_path,
@@ -87,19 +93,19 @@ def track_cmd(
     min_inliers,
     max_rmse,
     overlay,
-    tum,
-    kitti,
+    **also,
 ):
     """Estimate the camera pose in every frame of VIDEO (a video file, or images).
 
     Example: mirage track orbit.mp4 --model landmark.mirage --camera camera.yaml -o poses.csv
     """
+    also = {name: path for name, path in also.items() if path}  # format -> file
     refuse_overwrite(
-        {"-o": output, "--overlay": overlay, "--tum": tum, "--kitti": kitti},
+        {"-o": output, "--overlay": overlay} | {FORMATS[n].flag: p for n, p in also.items()},
         {"VIDEO": video, "--model": model_path, "--camera": camera_path},
     )
     out = check_writable(output)
-    for extra in (overlay, tum, kitti):
+    for extra in (overlay, *also.values()):
         if extra:
             check_writable(extra)
     model = LandmarkModel.load(require_file(model_path, "model file"))
@@ -126,23 +132,22 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
-    track_to_files(src, tracker, out, first or 0, last, every, overlay, tum, kitti)
+    track_to_files(src, tracker, out, first or 0, last, every, overlay, also)
 
 
 def track_to_files(
-    src, tracker, output, first=0, last=None, every=1, overlay=None, tum=None, kitti=None
+    src, tracker, output, first=0, last=None, every=1, overlay=None, also=None
 ) -> None:
-    """Track the frames, writing each record to the pose CSV (and TUM, KITTI, overlay) as
-    it comes; print the summary. Ctrl-C or SIGTERM keeps the finished frames in every
-    output, then the interrupt goes on (exit 130 / 143)."""
+    """Track the frames, writing each record to the pose CSV (and to `also`, format name ->
+    file, e.g. {"tum": "poses.tum"}, and the overlay) as it comes; print the summary.
+    Ctrl-C or SIGTERM keeps the finished frames in every output, then the interrupt goes
+    on (exit 130 / 143)."""
     if not refine.cached_on_disk():
         ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
     warm_up()  # compile or load it before the first frame's clock starts
     points = tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
-    outputs = [(output, "csv")] + [
-        (path, fmt) for path, fmt in ((tum, "tum"), (kitti, "kitti")) if path
-    ]
+    outputs = [(output, "csv")] + [(path, fmt) for fmt, path in (also or {}).items() if path]
     stats = _track(src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m)
     _summary(stats, output)
     if stats["interrupted"] is not None:
@@ -160,9 +165,9 @@ def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -
     interrupted = None
     t_start = time.perf_counter()
     with contextlib.ExitStack() as hold, contextlib.ExitStack() as stack:
+        # every format is offered the diagnostic columns; TUM's and KITTI's rows skip them
         writers = [
-            stack.enter_context(TrajectoryWriter(path, fmt, TRACK_COLUMNS if fmt == "csv" else ()))
-            for path, fmt in outputs
+            stack.enter_context(TrajectoryWriter(path, fmt, TRACK_COLUMNS)) for path, fmt in outputs
         ]
         fps = src.fps / every if src.fps else 10.0
         ov = stack.enter_context(_Overlay(overlay, fps, camera, axis_m)) if overlay else None

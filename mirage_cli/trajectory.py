@@ -148,11 +148,18 @@ def _kitti_row(rec: FrameRecord, index: int, extra: Sequence[str]) -> str | None
 
 @dataclass(frozen=True)
 class Format:
-    """A trajectory file format: its header, one line per record (None: no line), a reader."""
+    """A trajectory file format: its header, one line per record (None: no line), a reader,
+    and how the CLI knows it: `flag` (with its `help`) makes `mirage track FLAG FILE` also
+    write it; `guess_format` takes a file for it by name (`suffixes`) or by its first data
+    line (`fields` numbers)."""
 
     header: Callable[[Sequence[str]], str]
     row: Callable[[FrameRecord, int, Sequence[str]], str | None]
     read: Callable[[Path], pd.DataFrame]
+    flag: str = ""  # e.g. "--tum"; "" for no track option
+    help: str = ""
+    suffixes: tuple[str, ...] = ()  # lower case, with the dot
+    fields: int = 0  # whitespace-separated numbers a data line; 0: not recognised by content
 
 
 class TrajectoryWriter:
@@ -238,15 +245,18 @@ def read_trajectory(path, fmt: str | None = None) -> pd.DataFrame:
 
 
 def guess_format(path) -> str:
-    """'csv' for a .csv file; otherwise by the first data line: 8 numbers TUM, 12 KITTI."""
+    """The `FORMATS` name of a file: by its suffix (.csv, .tum, .kitti), else by the number
+    of fields on its first data line (8 TUM, 12 KITTI); 'csv' when neither tells."""
     p = Path(path)
-    if p.suffix.lower() == ".csv" or not p.is_file():
-        return "csv"
-    with open(p, errors="replace") as f:
-        for line in f:
-            fields = line.split()
-            if fields and not fields[0].startswith("#"):
-                return {8: "tum", 12: "kitti"}.get(len(fields), "csv")
+    for name, f in FORMATS.items():
+        if p.suffix.lower() in f.suffixes:
+            return name
+    if p.is_file():
+        with open(p, errors="replace") as fh:
+            for line in fh:
+                words = line.split()
+                if words and not words[0].startswith("#"):
+                    return next((n for n, f in FORMATS.items() if f.fields == len(words)), "csv")
     return "csv"
 
 
@@ -411,7 +421,28 @@ def read_kitti(path) -> pd.DataFrame:
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw (mirage track, camera-to-world)\n"
 
 FORMATS: dict[str, Format] = {
-    "csv": Format(lambda extra: _csv_line(POSE_COLUMNS + list(extra)), _csv_row, read_pose_csv),
-    "tum": Format(lambda extra: TUM_HEADER, _tum_row, read_tum),
-    "kitti": Format(lambda extra: "", _kitti_row, read_kitti),
+    "csv": Format(
+        lambda extra: _csv_line(POSE_COLUMNS + list(extra)),
+        _csv_row,
+        read_pose_csv,
+        suffixes=(".csv",),
+    ),  # track's -o/--output
+    "tum": Format(
+        lambda extra: TUM_HEADER,
+        _tum_row,
+        read_tum,
+        flag="--tum",
+        help="Also write a TUM trajectory (time x y z qx qy qz qw) for evo & co.",
+        suffixes=(".tum",),
+        fields=8,
+    ),
+    "kitti": Format(
+        lambda extra: "",
+        _kitti_row,
+        read_kitti,
+        flag="--kitti",
+        help="Also write KITTI poses (3x4 camera-to-world matrix, 12 numbers a line).",
+        suffixes=(".kitti",),
+        fields=12,
+    ),
 }

@@ -169,3 +169,78 @@ def test_format_read_errors(tmp_path, fmt, text):
     p.write_text(text)
     with pytest.raises(InputError, match=fmt.upper()):
         read_trajectory(p, fmt)
+
+
+def test_a_new_format_is_one_entry_and_one_row_function(tmp_path, monkeypatch, capsys):
+    """Issue 11: a format registered in FORMATS (here camera centres, `x y z` a line) is
+    written by TrajectoryWriter, recognised by guess_format, gets its `mirage track FLAG
+    FILE` option and is written by track's one output loop beside the pose CSV and TUM."""
+    from types import SimpleNamespace
+
+    import click
+
+    from mirage_cli import track, track_cli, trajectory
+
+    def xyz_row(rec, index, extra):  # the one function
+        return " ".join(f"{v:.6f}" for v in rec.pose.center) + "\n" if rec.ok else None
+
+    def read_xyz(path):  # only to read it back here
+        c = np.loadtxt(path, ndmin=2)
+        return pd.DataFrame({"x_m": c[:, 0], "y_m": c[:, 1], "z_m": c[:, 2]})
+
+    xyz = trajectory.Format(
+        lambda extra: "# x y z\n", xyz_row, read_xyz, flag="--xyz",
+        help="Also write the camera centres.", suffixes=(".xyz",), fields=3,
+    )  # fmt: skip
+    monkeypatch.setitem(trajectory.FORMATS, "xyz", xyz)  # the one entry
+
+    # the option: after --tum and --kitti, with its help, parameter named by the format
+    cmd = click.command("t")(track_cli.also_write_options(lambda **kw: None))
+    assert [p.opts for p in cmd.params] == [["--tum"], ["--kitti"], ["--xyz"]]
+    help_text = " ".join(cmd.get_help(click.Context(cmd)).split())
+    assert "--xyz FILE Also write the camera centres." in help_text
+
+    # track's output loop, fed three records (one lost) instead of a real tracker
+    poses = some_poses(2)
+    recs = [
+        FrameRecord(Status.OK, poses[0], 0, 0.0),
+        FrameRecord(Status.LOST, None, 1, 1 / 30),
+        FrameRecord(Status.OK, poses[1], 2, 2 / 30),
+    ]
+    monkeypatch.setattr(track, "run", lambda frames, tracker, keep_images: iter(recs))
+    monkeypatch.setattr(track_cli, "warm_up", lambda: None)
+    src = SimpleNamespace(count=3, fps=30.0, frames=lambda first, last, every: iter(()))
+    tracker = SimpleNamespace(model=SimpleNamespace(points=np.zeros((0, 3))), camera=None)
+    also = {"tum": tmp_path / "p.tum", "xyz": tmp_path / "p.xyz"}
+    track_cli.track_to_files(src, tracker, tmp_path / "p.csv", also=also)
+    assert "track: 3 frames, 2 ok" in capsys.readouterr().out
+
+    assert len(read_pose_csv(tmp_path / "p.csv")) == 3
+    assert len(read_trajectory(tmp_path / "p.tum")) == 2
+    lines = (tmp_path / "p.xyz").read_text().splitlines()
+    assert lines[0] == "# x y z" and len(lines) == 3
+    assert trajectory.guess_format(tmp_path / "p.xyz") == "xyz"  # by suffix
+    (tmp_path / "centres.txt").write_text("\n".join(lines[1:]) + "\n")
+    assert trajectory.guess_format(tmp_path / "centres.txt") == "xyz"  # by fields a line
+    back = read_trajectory(tmp_path / "p.xyz")
+    assert np.allclose(back[["x_m", "y_m", "z_m"]], [p.center for p in poses], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "name, text, fmt",
+    [
+        ("a.csv", "frame,x_m\n", "csv"),
+        ("a.TUM", "", "tum"),
+        ("a.kitti", "1 2 3\n", "kitti"),  # the suffix decides
+        ("a.txt", "# c\n\n0 1 2 3 4 5 6 7\n", "tum"),
+        ("a.txt", " ".join("0" * 12) + "\n", "kitti"),
+        ("a.txt", "1 2 3\n", "csv"),
+        ("missing.txt", None, "csv"),
+    ],
+)
+def test_guess_format(tmp_path, name, text, fmt):
+    from mirage_cli.trajectory import guess_format
+
+    if text is not None:
+        (tmp_path / name).write_text(text)
+    assert guess_format(tmp_path / name) == fmt
