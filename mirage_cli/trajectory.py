@@ -17,10 +17,9 @@ from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
-from scipy.spatial.transform import Rotation
 
 from . import validate
 from .errors import InputError
@@ -33,6 +32,9 @@ from .fileio import (
     write_failure,
 )
 from .pose import R_CB, Pose
+
+if TYPE_CHECKING:  # pandas and scipy load with the readers: writing needs neither
+    import pandas as pd
 
 
 class Status(str, Enum):
@@ -290,6 +292,8 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
     (default "ok"), numeric pose columns (NaN where not ok) and the derived angle
     columns recomputed from the quaternion. Every problem names the column and row.
     """
+    import pandas as pd
+
     p = require_file(path, "pose file")
     header = f"a header row: {','.join(POSE_COLUMNS[:10])}"
     df = read_csv(p, "pose file", header, dtype=str, keep_default_na=False)
@@ -393,6 +397,8 @@ def _numbers(path, what: str, width: int) -> np.ndarray:
 
 def _pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.DataFrame:
     """A pose-CSV table of ok rows (quaternions normalised, angles derived)."""
+    import pandas as pd
+
     quats = quats / np.linalg.norm(quats, axis=1, keepdims=True)
     df = pd.DataFrame({"frame": [str(f) for f in frames], "time_s": times})
     df["status"] = Status.OK.value
@@ -412,6 +418,8 @@ def read_tum(path) -> pd.DataFrame:
 
 def read_kitti(path) -> pd.DataFrame:
     """A KITTI poses file (12 numbers of T_WC a line): frames are the row numbers, no times."""
+    from scipy.spatial.transform import Rotation
+
     T = _numbers(path, "KITTI", 12).reshape(-1, 3, 4)
     validate.rotation_rows(T[:, :, :3], path, "KITTI")
     q = Rotation.from_matrix(T[:, :, :3]).as_quat()[:, [3, 0, 1, 2]]

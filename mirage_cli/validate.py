@@ -11,12 +11,15 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
-import pandas as pd
 
 from .errors import InputError
+
+if TYPE_CHECKING:  # pandas loads when a table is read, not with `mirage track`
+    import pandas as pd
 
 QUAT_TOL = 0.01  # |norm - 1| up to this is rounding in a hand-written file: normalised
 
@@ -134,6 +137,8 @@ def _where(path, df: pd.DataFrame, i: int, col: str | None = None) -> str:
 def unique_frames(df: pd.DataFrame, path, keys: pd.Series | None = None) -> None:
     """A frame listed twice would be used at one of two poses or counted twice: refuse."""
     if keys is None:  # '7' and '7.0' are the same video frame
+        import pandas as pd
+
         text = df["frame"].astype(str).str.strip()
         num = pd.to_numeric(text, errors="coerce")
         integral = (num.notna() & (num == np.round(num))).to_numpy()
