@@ -382,8 +382,9 @@ def ground_points(
     away: a pose must rest on the landmark's own points. W is Z up (brief, section 3), so
     the ground is the lowest horizontal layer (+-`tol_m`, which absorbs the depth error
     of far floor points) holding at least `min_share` of the points, with almost nothing
-    (`max_below`) under it. A model that is nearly all one layer (a flat landmark) has no
-    separate ground: nothing is flagged.
+    (`max_below`) under it, that reaches out well beyond the rest of the points (1.5x
+    their horizontal radius). A model that is nearly all one layer (a flat landmark) has
+    no separate ground: nothing is flagged.
     """
     P = np.asarray(points, float).reshape(-1, 3)
     ground = np.zeros(len(P), bool)
@@ -403,7 +404,11 @@ def ground_points(
     share, below = on.mean(), np.mean(P[:, 2] < h - tol_m)
     if share < min_share or share > 0.9 or below > max_below:
         return ground
-    return on
+    # ground reaches out around the landmark; the landmark's own lowest band does not
+    c = np.median(P[~on, :2], axis=0)
+    r_on = np.percentile(np.hypot(*(P[on, :2] - c).T), 90)
+    r_off = np.percentile(np.hypot(*(P[~on, :2] - c).T), 90)
+    return on if r_on > 1.5 * r_off else ground
 
 
 def observations_from_keyframes(keyframes: list[Keyframe]) -> dict[str, np.ndarray]:

@@ -340,21 +340,80 @@ def _ransac(X, u, camera: Camera, opts: RansacOptions):
     return pose, mask
 
 
+def _pixel_jacobian(X: np.ndarray, pose: Pose, camera: Camera):
+    """(n,2,6) Jacobian of the pixel projection (left perturbation) and (n,2) normalised
+    predictions."""
+    Xc = pose.transform(X)
+    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1.0 / Xc[:, 2]
+    z0 = np.zeros_like(x)
+    J = np.stack(
+        [
+            camera.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z0, -x * iz]),
+            camera.fy * np.column_stack([-(1 + y * y), x * y, x, z0, iz, -y * iz]),
+        ],
+        axis=1,
+    )
+    return J, np.column_stack([x, y])
+
+
 def cramer_rao_covariance(points_3d, pose: Pose, camera: Camera, sigma_px: float) -> np.ndarray:
     """6x6 Cramer-Rao bound (J^T J)^-1 sigma^2 at `pose`, in the same parametrisation as
     `PoseEstimate.covariance` (left perturbation: rotation vector rad, translation m):
     the best any unbiased estimator can do with these points and isotropic pixel noise."""
     X = np.ascontiguousarray(np.asarray(points_3d, dtype=np.float64).reshape(-1, 3))
-    Xc = pose.transform(X)
-    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1.0 / Xc[:, 2]
-    z0 = np.zeros_like(x)
-    J = np.vstack(
-        [
-            camera.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z0, -x * iz]),
-            camera.fy * np.column_stack([-(1 + y * y), x * y, x, z0, iz, -y * iz]),
-        ]
-    )
+    J, _ = _pixel_jacobian(X, pose, camera)
+    J = J.reshape(-1, 6)
     return np.linalg.inv(J.T @ J) * sigma_px**2
+
+
+def sandwich_covariance(
+    points_3d, points_2d, pose: Pose, camera: Camera, huber_px: float | None = None
+) -> np.ndarray:
+    """6x6 pose covariance from the residuals themselves (same parametrisation as
+    `PoseEstimate.covariance`): the leverage-corrected (HC3, close to the jackknife)
+    sandwich H^-1 (sum J_i^T e_i e_i^T J_i) H^-1 with e_i = (I - J_i H^-1 J_i^T)^-1 r_i.
+
+    (J^T J)^-1 s^2 assumes every point is as good as the average one. When a few points
+    are off and carry the pose (an isolated point, a small cluster at the image edge),
+    the fit bends towards them, their residuals shrink and s^2 looks fine; the leverage
+    correction restores what each point's residual would be without it, so such a pose
+    gets the large uncertainty it has. With `huber_px`, the Huber weights Mirage-S fitted
+    with (`RefineOptions.huber_px`): (J^T W J)^-1 (sum w_i^2 J_i^T e_i e_i^T J_i) (J^T W
+    J)^-1. NaNs when the points cannot fix a pose.
+    """
+    X = np.ascontiguousarray(np.asarray(points_3d, dtype=np.float64).reshape(-1, 3))
+    nan = np.full((6, 6), np.nan)
+    if len(X) < 4:
+        return nan
+    J, pred = _pixel_jacobian(X, pose, camera)
+    xy = camera.undistort_points(points_2d)
+    r = (xy - pred) * np.array([camera.fx, camera.fy])
+    w = np.ones(len(X))
+    if huber_px is not None:  # as refine.robust_weights, without its gross-outlier cut
+        r2 = (r * r).sum(1)
+        k2 = max(huber_px**2, 6.25 * np.median(r2) / _k.RAYLEIGH_MEDIAN**2)
+        w = np.minimum(np.sqrt(k2 / np.maximum(r2, 1e-300)), 1.0)
+    H = np.einsum("n,nki,nkj->ij", w, J, J)
+    try:
+        Hi = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return nan
+    h = np.einsum("n,nki,ij,nlj->nkl", w, J, Hi, J)  # per-point 2x2 leverage
+    A = np.eye(2) - h
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    det = np.where(np.abs(det) > 1e-3, det, 1e-3)  # a point that alone fixes a direction
+    e = (
+        np.column_stack(
+            [
+                A[:, 1, 1] * r[:, 0] - A[:, 0, 1] * r[:, 1],
+                -A[:, 1, 0] * r[:, 0] + A[:, 0, 0] * r[:, 1],
+            ]
+        )
+        / det[:, None]
+    )
+    g = np.einsum("n,nki,nk->ni", w, J, e)  # w_i J_i^T e_i
+    cov = Hi @ (g.T @ g) @ Hi
+    return 0.5 * (cov + cov.T)
 
 
 def solve_pose(

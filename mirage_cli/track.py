@@ -23,7 +23,7 @@ from .frames import Frame
 from .model import LandmarkModel, ground_points, point_twins
 from .pose import Pose
 from .signals import through_compiled_code
-from .solver import PoseEstimate, RansacOptions, RefineOptions, solve_pose
+from .solver import PoseEstimate, RansacOptions, RefineOptions, sandwich_covariance, solve_pose
 from .trajectory import FrameRecord, Status
 
 
@@ -36,6 +36,7 @@ class TrackSettings:
     min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
     max_rmse_px: float = 2.0
     ransac_px: float = 3.0
+    reject_px: float = 2.0  # the fit drops points beyond max(this, 5 sigma)
     huber_px: float = 0.5  # Mirage-S's Huber floor: residuals beyond max(this, 2.5 sigma)
     # weigh less (a model point or keypoint that is off by a pixel pulls the pose less)
     ratio: float = 0.8
@@ -54,9 +55,10 @@ class TrackSettings:
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
     distinct_deg: float = 5.0  # different hypotheses
-    model_error_points: float = 50.0  # model/keypoint errors average like this many points
+    model_error_points: float = 300.0  # model/keypoint errors average like this many points
     max_sigma_pos_m: float = 0.03  # a larger 1-sigma uncertainty is `uncertain`, not ok
     max_sigma_rot_deg: float = 1.5
+    max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance
     seed: int = 0
 
 
@@ -82,7 +84,7 @@ def unambiguous_pose(
     kw = dict(
         method=s.method,
         ransac=RansacOptions(threshold_px=s.ransac_px, seed=s.seed),
-        refine=RefineOptions(huber_px=s.huber_px),
+        refine=RefineOptions(reject_px=s.reject_px, huber_px=s.huber_px),
     )
     Xu, uvu = X[unique], uv[unique]
     first = solve_pose(Xu, uvu, camera, reference, **kw)
@@ -110,7 +112,7 @@ def unambiguous_pose(
         return first
     final = solve_pose(
         X[inl], uv[inl], camera, first.pose, method=s.method,
-        refine=RefineOptions(reject_px=s.ransac_px, huber_px=s.huber_px),
+        refine=RefineOptions(reject_px=s.reject_px, huber_px=s.huber_px),
     )  # fmt: skip
     if not final.success:
         return first
@@ -234,10 +236,10 @@ class Tracker:
             self.camera,
             reference_pose=self.prev_pose,
             method=self.s.method,
-            refine=RefineOptions(reject_px=self.s.ransac_px, huber_px=self.s.huber_px),
+            refine=RefineOptions(reject_px=self.s.reject_px, huber_px=self.s.huber_px),
         )
         land = self.track_land[good]
-        res = self._gate(est, len(uv), "flow", check_jump=True, on_landmark=land)
+        res = self._gate(est, len(uv), "flow", True, land, (X, uv))
         if res.ok and est.rmse_px > self.s.flow_max_rmse_px:
             return None  # the flow has drifted or the motion was too large: detect afresh
         if res.ok:
@@ -281,10 +283,10 @@ class Tracker:
             reference_pose=pred,
             method=self.s.method,
             ransac=RansacOptions(threshold_px=self.s.ransac_px, seed=self.s.seed),
-            refine=RefineOptions(huber_px=self.s.huber_px),
+            refine=RefineOptions(reject_px=self.s.reject_px, huber_px=self.s.huber_px),
         )
         land = self.on_landmark[pid_all[ci]]
-        res = self._gate(est, len(uv), "detect", check_jump=True, on_landmark=land)
+        res = self._gate(est, len(uv), "detect", True, land, (X, uv))
         return self._accept(res, est, uv, X, kf, land)
 
     def _relocalise(self, kps, desc) -> FrameRecord:
@@ -309,7 +311,7 @@ class Tracker:
         if isinstance(est, Status):
             lost.status = est
             return lost
-        res = self._gate(est, len(uv), "relocalise", check_jump=False, on_landmark=land)
+        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv))
         return self._accept(res, est, uv, X, kf, land)
 
     def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int, land) -> FrameRecord:
@@ -336,20 +338,32 @@ class Tracker:
             parts.append(self._kf_cache[k])
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
 
-    def _sigmas(self, est: PoseEstimate, n: int) -> tuple[float, float]:
+    def _sigmas(self, est: PoseEstimate, n: int, points=None) -> tuple[float, float]:
         """1-sigma position (m) and rotation (deg) including the model's own error.
 
-        The solver's covariance scales with the pixel residuals of this frame, which
-        average out over n points; errors of the model points and of keypoint localisation
-        on a face seen at an angle are shared by neighbouring points and do not, so they
-        are added as the model's reprojection RMS over `model_error_points` independent
-        points: Cov = (J^T J)^-1 (s_res^2 + s_model^2 n / n_model).
+        What this frame's residuals show comes from the leverage-corrected sandwich
+        covariance of the inliers (`points`: X, uv and est.inliers; see
+        `solver.sandwich_covariance`), so a pose carried by a few bad or isolated points
+        is as uncertain as it is; without points, the solver's (J^T J)^-1 s_res^2. Errors
+        of the model points and of keypoint localisation on a face seen at an angle are
+        shared by neighbouring points and do not average out over n, so they are added
+        as the model's reprojection RMS over `model_error_points` independent points:
+        Cov = Cov_res + (J^T J)^-1 s_model^2 n / n_model.
         """
         s2 = est.sigma_px**2
         if not s2 > 0:
             return est.sigma_pos_m, est.sigma_rot_deg
-        k = np.sqrt(1.0 + self.model_rms_px**2 * n / (self.s.model_error_points * s2))
-        return est.sigma_pos_m * k, est.sigma_rot_deg * k
+        cov = est.covariance * (self.model_rms_px**2 * n / (self.s.model_error_points * s2))
+        res = est.covariance
+        if points is not None:
+            X, uv = points
+            inl = est.inliers
+            sw = sandwich_covariance(X[inl], uv[inl], est.pose, self.camera, self.s.huber_px)
+            if np.all(np.isfinite(sw)):
+                res = sw
+        cov = cov + res
+        pos = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+        return pos, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
 
     def _gate(
         self,
@@ -358,6 +372,7 @@ class Tracker:
         mode: str,
         check_jump: bool,
         on_landmark: np.ndarray | None = None,
+        points: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> FrameRecord:
         """ok only with enough consistent inliers, enough of them on the landmark itself
         (`on_landmark`, per match; None: all are), a small residual, a plausible motion and
@@ -373,7 +388,7 @@ class Tracker:
         )
         if not est.success:
             return res
-        res.sigma_pos_m, res.sigma_rot_deg = self._sigmas(est, ninl)
+        res.sigma_pos_m, res.sigma_rot_deg = self._sigmas(est, ninl, points)
         if ninl < self.s.min_inliers or ninl < self.s.min_inlier_ratio * n:
             return res
         n_land = ninl if on_landmark is None else int((est.inliers & on_landmark).sum())
@@ -392,10 +407,11 @@ class Tracker:
             )
         ):
             return res
-        if not (
-            res.sigma_pos_m <= self.s.max_sigma_pos_m
-            and res.sigma_rot_deg <= self.s.max_sigma_rot_deg
-        ):
+        max_pos = self.s.max_sigma_pos_m
+        if points is not None:  # relative to the range: the inliers' median depth
+            depth = float(np.median(est.pose.transform(points[0][est.inliers])[:, 2]))
+            max_pos = min(max_pos, self.s.max_sigma_range * depth)
+        if not (res.sigma_pos_m <= max_pos and res.sigma_rot_deg <= self.s.max_sigma_rot_deg):
             res.status = Status.UNCERTAIN
             return res
         res.status, res.pose = Status.OK, est.pose

@@ -10,7 +10,7 @@ from conftest import SAMPLE
 
 from mirage_cli.camera import Camera
 from mirage_cli.features import guided_match
-from mirage_cli.model import LandmarkModel, point_twins
+from mirage_cli.model import LandmarkModel, ground_points, point_twins
 from mirage_cli.pose import Pose, look_at
 from mirage_cli.solver import PoseEstimate
 from mirage_cli.track import Tracker, TrackSettings, unambiguous_pose
@@ -112,3 +112,29 @@ def test_a_pose_too_uncertain_to_trust_is_uncertain_not_ok(model):
     res = tr._gate(vague, 40, "detect", check_jump=False)
     assert res.status == "uncertain" and res.pose is None
     assert res.sigma_pos_m > TrackSettings().max_sigma_pos_m
+
+
+def test_ground_is_the_lowest_dense_layer():
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-1, 1, (400, 2)), rng.normal(0, 0.008, 400)])
+    box = rng.uniform([-0.3, -0.2, 0.05], [0.3, 0.2, 0.6], (1500, 3))
+    top = np.column_stack([rng.uniform(-0.3, 0.3, (600, 2)), np.full(600, 0.6)])
+    g = ground_points(np.vstack([floor, box, top]))
+    assert g[:400].all() and not g[400:].any()  # a dense top face above it is landmark
+    assert not ground_points(floor).any()  # all one layer: a flat landmark, no ground
+    assert not ground_points(box).any()  # no dense layer at the bottom
+
+
+def test_ground_alone_is_not_ok(model):
+    """A pose from floor points only (the landmark out of view, or hidden) is never ok:
+    a tiled floor gives a confident pose one tile period off."""
+    tr = Tracker(model, model.camera, TrackSettings())
+    pose = look_at([1.5, 0.0, 0.6], [0, 0, 0.3])
+    inl = np.ones(40, bool)
+    est = PoseEstimate(pose, True, "", 5, 0.5, inl, np.eye(6) * 1e-8, sigma_px=0.5)
+    ground = np.zeros(40, bool)
+    assert tr._gate(est, 40, "detect", False, ground).status == "lost"
+    few = ground.copy()
+    few[: TrackSettings().min_landmark_inliers] = True
+    assert tr._gate(est, 40, "detect", False, few).status == "ok"
+    assert tr._gate(est, 40, "detect", False, ~ground).status == "ok"
