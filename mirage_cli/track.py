@@ -45,6 +45,7 @@ class TrackSettings:
     flow_fb_px: float = 0.7  # forward-backward consistency of Lucas-Kanade
     flow_window_px: int = 7  # Lucas-Kanade window: small, so it stays on one surface
     flow_keep: float = 0.5  # fewer of the detected points still followed: detect afresh
+    flow_max_dev_sigma: float = 3.0  # flowed pose this many sigmas off the prediction: detect
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
     local_keyframes: int = 4  # keyframes near the previous pose to match against
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
@@ -155,6 +156,7 @@ class Tracker:
         self._kf_cache: dict[int, tuple] = {}
         self.twins = point_twins(model)
         self.on_landmark = ~ground_points(model.points)
+        self._sigma_res_m = float("nan")  # last gate's position sigma from residuals alone
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
@@ -242,6 +244,13 @@ class Tracker:
         res = self._gate(est, len(uv), "flow", True, land, (X, uv))
         if res.ok and est.rmse_px > self.s.flow_max_rmse_px:
             return None  # the flow has drifted or the motion was too large: detect afresh
+        if res.ok and self.velocity is not None:
+            # points that slid along an edge bend the pose while the residuals stay small;
+            # a smooth path predicts the pose well, so a flowed pose far from the
+            # prediction (in the sigmas of its residuals) is checked by a detection
+            dev = est.pose.distance_to(pred) / max(self._sigma_res_m, 1e-9)
+            if dev > self.s.flow_max_dev_sigma:
+                return None
         if res.ok:
             self.since_detect += 1
             self.track_px, self.track_X = uv[est.inliers].astype(np.float32), X[est.inliers]
@@ -351,9 +360,10 @@ class Tracker:
         Cov = Cov_res + (J^T J)^-1 s_model^2 n / n_model.
         """
         s2 = est.sigma_px**2
+        self._sigma_res_m = est.sigma_pos_m  # what the residuals alone say (flow check)
         if not s2 > 0:
             return est.sigma_pos_m, est.sigma_rot_deg
-        cov = est.covariance * (self.model_rms_px**2 * n / (self.s.model_error_points * s2))
+        n_model = self.s.model_error_points
         res = est.covariance
         if points is not None:
             X, uv = points
@@ -361,7 +371,8 @@ class Tracker:
             sw = sandwich_covariance(X[inl], uv[inl], est.pose, self.camera, self.s.huber_px)
             if np.all(np.isfinite(sw)):
                 res = sw
-        cov = cov + res
+        self._sigma_res_m = float(np.sqrt(max(np.trace(res[3:, 3:]), 0.0)))
+        cov = res + est.covariance * (self.model_rms_px**2 * n / (n_model * s2))
         pos = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
         return pos, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
 
