@@ -52,6 +52,10 @@ class TrackSettings:
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
     max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
+    detect_margin_px: int = -1  # while tracking: detect only in the landmark's predicted box
+    # plus this margin (-1: the whole frame, the default: 2x faster detection on the sample
+    # orbit but the floor around the landmark steadies the pose, 1.5 vs 2.1 mm on the
+    # tiled-floor scene with a 48 px margin)
     second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
@@ -157,6 +161,9 @@ class Tracker:
         self.twins = point_twins(model)
         self.on_landmark = ~ground_points(model.points)
         self._sigma_res_m = float("nan")  # last gate's position sigma from residuals alone
+        # where to detect while tracking: the landmark's own points (a subsample suffices)
+        land = np.flatnonzero(self.on_landmark)
+        self._landmark_X = model.points[land[:: max(1, len(land) // 2000)]] if len(land) else None
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
@@ -261,15 +268,44 @@ class Tracker:
 
     def _detect(self, gray: np.ndarray) -> FrameRecord:
         self.since_detect = 0
+        pred = self._predicted()
+        box = self._landmark_box(pred, gray.shape) if pred is not None else None
+        if box is not None:  # tracking: detect only where the landmark is predicted
+            x0, y0, x1, y1 = box
+            kps, desc = detect(gray[y0:y1, x0:x1], self.detector)
+            kps = kps + np.array([x0, y0], np.float32)
+            if len(kps) >= self.s.min_inliers:
+                res = self._guided(kps, desc, pred)
+                if res.ok:
+                    return res
         kps, desc = detect(gray, self.detector)
         if desc is None or len(kps) < self.s.min_inliers:
             return FrameRecord(Status.LOST, mode="detect")
-        pred = self._predicted()
-        if pred is not None:
+        if pred is not None and box is None:
             res = self._guided(kps, desc, pred)
             if res.ok:
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
+
+    def _landmark_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
+        """Pixel box (x0, y0, x1, y1) around the landmark's points as the predicted pose
+        sees them, with a margin; None when it would cover most of the frame anyway (or
+        the landmark is not predicted in view), so the whole frame is searched."""
+        if self.s.detect_margin_px < 0 or self._landmark_X is None:
+            return None
+        X = self._landmark_X
+        front = pred.transform(X)[:, 2] > 1e-3
+        if front.sum() < self.s.min_inliers:
+            return None
+        uv = self.camera.project(X[front], pred)
+        h, w = shape[:2]
+        m = self.s.detect_margin_px
+        x0, y0 = np.floor(np.percentile(uv, 1, axis=0) - m).astype(int)
+        x1, y1 = np.ceil(np.percentile(uv, 99, axis=0) + m).astype(int)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+        if x1 - x0 < 32 or y1 - y0 < 32 or (x1 - x0) * (y1 - y0) > 0.7 * w * h:
+            return None
+        return int(x0), int(y0), int(x1), int(y1)
 
     def _guided(self, kps, desc, pred: Pose) -> FrameRecord:
         """Tracking: match near the predicted projections of the nearby keyframes' points."""
