@@ -11,9 +11,7 @@ from __future__ import annotations
 import glob
 import logging
 import os
-import queue
 import re
-import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -278,51 +276,6 @@ class FrameSource:
                 i += 1
         finally:
             cap.release()
-
-
-def prefetch(frames: Iterable[Frame], depth: int = 8) -> Iterator[Frame]:
-    """The same frames in the same order, decoded ahead in a thread of their own.
-
-    FFmpeg and the image codecs release the GIL, so decoding overlaps the tracking on the
-    second core; `depth` bounds the frames held. An error of the source comes out where
-    it happened in the sequence; closing the generator stops the thread.
-    """
-    q: queue.Queue = queue.Queue(maxsize=max(1, depth))
-    stop = threading.Event()
-    done = object()
-
-    def work():
-        try:
-            for f in frames:
-                while not stop.is_set():
-                    try:
-                        q.put(f, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            q.put(done)
-        except BaseException as e:  # handed to the consumer, raised there
-            q.put(e)
-
-    t = threading.Thread(target=work, name="mirage-decode", daemon=True)
-    t.start()
-    try:
-        while True:
-            item = q.get()
-            if item is done:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
-        while t.is_alive():  # unblock a put() waiting for room
-            try:
-                q.get_nowait()
-            except queue.Empty:
-                t.join(timeout=0.05)
 
 
 def matching_camera(camera: Camera, width: int, height: int) -> Camera:

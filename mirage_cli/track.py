@@ -52,10 +52,8 @@ class TrackSettings:
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
     max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
-    detect_margin_px: int = -1  # while tracking: detect only in the landmark's predicted box
-    # plus this margin (-1: the whole frame, the default: 2x faster detection on the sample
-    # orbit but the floor around the landmark steadies the pose, 1.5 vs 2.1 mm on the
-    # tiled-floor scene with a 48 px margin)
+    detect_margin_px: int = 32  # while tracking: detect only in the predicted box of the
+    # model's points plus this margin (-1: always the whole frame)
     second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
@@ -161,9 +159,10 @@ class Tracker:
         self.twins = point_twins(model)
         self.on_landmark = ~ground_points(model.points)
         self._sigma_res_m = float("nan")  # last gate's position sigma from residuals alone
-        # where to detect while tracking: the landmark's own points (a subsample suffices)
-        land = np.flatnonzero(self.on_landmark)
-        self._landmark_X = model.points[land[:: max(1, len(land) // 2000)]] if len(land) else None
+        # where to detect while tracking: where the model has points (a subsample suffices;
+        # the ground near the landmark steadies the pose, so it counts)
+        P = model.points
+        self._model_X = P[:: max(1, len(P) // 2000)] if len(P) else None
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
@@ -288,12 +287,13 @@ class Tracker:
         return self._relocalise(kps, desc)  # also when the prediction was too far off
 
     def _landmark_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
-        """Pixel box (x0, y0, x1, y1) around the landmark's points as the predicted pose
-        sees them, with a margin; None when it would cover most of the frame anyway (or
-        the landmark is not predicted in view), so the whole frame is searched."""
-        if self.s.detect_margin_px < 0 or self._landmark_X is None:
+        """Pixel box (x0, y0, x1, y1) around the model's points as the predicted pose sees
+        them, with a margin: nothing outside it can match. None when it would cover most of
+        the frame anyway (or too few points are predicted in front), so the whole frame is
+        searched."""
+        if self.s.detect_margin_px < 0 or self._model_X is None:
             return None
-        X = self._landmark_X
+        X = self._model_X
         front = pred.transform(X)[:, 2] > 1e-3
         if front.sum() < self.s.min_inliers:
             return None

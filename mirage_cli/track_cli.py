@@ -21,7 +21,7 @@ from .fileio import (
     require_file,
     video_frames_written,
 )
-from .frames import FrameSource, matching_camera, prefetch
+from .frames import FrameSource, matching_camera
 from .model import LandmarkModel
 from .plotting import draw_overlay
 from .solver import METHODS, warm_up
@@ -172,7 +172,7 @@ def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -
         fps = src.fps / every if src.fps else 10.0
         ov = stack.enter_context(_Overlay(overlay, fps, camera, axis_m)) if overlay else None
         bar = stack.enter_context(ui.progress(total, "tracking"))
-        frames = prefetch(src.frames(first, last, every))  # decoding on the other core
+        frames = src.frames(first, last, every)
         try:
             for rec in track.run(frames, tracker, keep_images=ov is not None):
                 for w in writers:
