@@ -32,7 +32,7 @@ class TrackSettings:
     method: str = "mirage-s"
     redetect_every: int = 5  # frames between full detections while flow holds
     min_inliers: int = 15  # fewer consistent points: lost
-    min_inlier_ratio: float = 0.25  # of the matches, at detection
+    min_inlier_ratio: float = 0.5  # of the matches, at detection
     min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
     max_rmse_px: float = 2.0
     ransac_px: float = 3.0
@@ -54,6 +54,7 @@ class TrackSettings:
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
     detect_margin_px: int = 32  # while tracking: detect only in the predicted box of the
     # model's points plus this margin (-1: always the whole frame)
+    upsample_below_px: int = 480  # a smaller detection box is upsampled to this size (0: off)
     second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
@@ -159,6 +160,8 @@ class Tracker:
         self.twins = point_twins(model)
         self.on_landmark = ~ground_points(model.points)
         self._sigma_res_m = float("nan")  # last gate's position sigma from residuals alone
+        self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
+        self._uncertain_pose: Pose | None = None
         # where to detect while tracking: where the model has points (a subsample suffices;
         # the ground near the landmark steadies the pose, so it counts)
         P = model.points
@@ -169,6 +172,7 @@ class Tracker:
     # ------------------------------------------------------------------------------------
     def process(self, gray: np.ndarray) -> FrameRecord:
         res = None
+        self._uncertain_pose = None
         if (
             self.s.flow
             and self.prev_pose is not None
@@ -195,11 +199,13 @@ class Tracker:
             self.velocity = None
             if self.lost_run > 3:
                 self.prev_pose = None  # too long: recognise globally again
+        # a pose too vague to write still says where to look in the next frame
+        self.hint = self._uncertain_pose if res.status == Status.UNCERTAIN else None
         return res
 
     def _predicted(self) -> Pose | None:
         if self.prev_pose is None:
-            return None
+            return self.hint  # the last frame's uncertain pose, if any
         if self.velocity is None:
             return self.prev_pose
         p = self.velocity @ self.prev_pose
@@ -271,8 +277,13 @@ class Tracker:
         box = self._landmark_box(pred, gray.shape) if pred is not None else None
         if box is not None:  # tracking: detect only where the landmark is predicted
             x0, y0, x1, y1 = box
-            kps, desc = detect(gray[y0:y1, x0:x1], self.detector)
-            kps = kps + np.array([x0, y0], np.float32)
+            crop = gray[y0:y1, x0:x1]
+            up = 1.0
+            if max(crop.shape) < self.s.upsample_below_px:  # small and far: finer features
+                up = self.s.upsample_below_px / max(crop.shape)
+                crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
+            kps, desc = detect(crop, self.detector)
+            kps = kps / np.float32(up) + np.array([x0, y0], np.float32)
             if len(kps) >= self.s.min_inliers:
                 res = self._guided(kps, desc, pred)
                 if res.ok:
@@ -314,7 +325,7 @@ class Tracker:
         Xc = pred.transform(X_all)
         front = Xc[:, 2] > 1e-3
         uvp = self.camera.project(X_all[front], pred)
-        radius = self.s.guided_radius_px * (1 + self.lost_run)
+        radius = self.s.guided_radius_px * (1 + min(self.lost_run, 3))
         qi, ci = guided_match(kps, desc, uvp, d_all[front], pid_all[front], radius, self.s.ratio)
         ci = np.flatnonzero(front)[ci]
         if len(qi) < self.s.min_inliers:
@@ -460,6 +471,7 @@ class Tracker:
             max_pos = min(max_pos, self.s.max_sigma_range * depth)
         if not (res.sigma_pos_m <= max_pos and res.sigma_rot_deg <= self.s.max_sigma_rot_deg):
             res.status = Status.UNCERTAIN
+            self._uncertain_pose = est.pose
             return res
         res.status, res.pose = Status.OK, est.pose
         if mode == "flow" and self.keyframe >= 0:
