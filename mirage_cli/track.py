@@ -54,7 +54,8 @@ class TrackSettings:
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
     detect_margin_px: int = 32  # while tracking: detect only in the predicted box of the
     # model's points plus this margin (-1: always the whole frame)
-    upsample_below_px: int = 480  # a smaller detection box is upsampled to this size (0: off)
+    upsample_below_px: int = 320  # a smaller detection box (longer side, px; 0: never)...
+    upsample_to_px: int = 480  # ...is upsampled to this size before detection
     second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
@@ -280,7 +281,7 @@ class Tracker:
             crop = gray[y0:y1, x0:x1]
             up = 1.0
             if max(crop.shape) < self.s.upsample_below_px:  # small and far: finer features
-                up = self.s.upsample_below_px / max(crop.shape)
+                up = self.s.upsample_to_px / max(crop.shape)
                 crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
             kps, desc = detect(crop, self.detector)
             kps = kps / np.float32(up) + np.array([x0, y0], np.float32)
