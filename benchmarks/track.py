@@ -14,6 +14,8 @@ frame rate of the video as the physical ceiling.
 from __future__ import annotations
 
 import argparse
+import re
+import subprocess
 import sys
 import tempfile
 import time
@@ -170,6 +172,7 @@ def main():
     ap.add_argument("--model", type=Path, help="existing model (default: build from sample)")
     ap.add_argument("--repeats", type=int, default=1, help="runs per pipeline (median fps)")
     ap.add_argument("--no-plain", action="store_true", help="skip the plain OpenCV pipeline")
+    ap.add_argument("--no-command", action="store_true", help="skip the end-to-end CLI run")
     ap.add_argument(
         "--data",
         type=Path,
@@ -225,6 +228,39 @@ def main():
         f"\ndecode-only: {np.median(decode):.0f} frames/s (median of {len(decode)}); "
         "fps columns exclude decoding (frames held in memory)"
     )
+    if args.no_command:
+        return
+    loop = next((r["fps"] for r in rows if r["pipeline"] == "mirage-s"), float("nan"))
+    cmd_fps, wall = command_fps(model, args.data / "orbit.mp4", max(1, args.repeats))
+    ceiling = float(np.median(decode))
+    print(
+        f"\n| end to end | frames/s | share of the decode-only ceiling |\n|---|---|---|\n"
+        f"| `mirage track` (its summary; wall {wall:.1f} s with start-up) | {cmd_fps:.1f} "
+        f"| {cmd_fps / ceiling:.3f} |\n| the tracking loop (mirage-s row) | {loop:.1f} "
+        f"| {loop / ceiling:.3f} |\n| decode only | {ceiling:.0f} | 1 |"
+    )
+
+
+def command_fps(model, video: Path, repeats: int) -> tuple[float, float]:
+    """`mirage track` end to end in a subprocess: (median frames/s of its summary, median wall
+    seconds including start-up and model loading)."""
+    rates, walls = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "model.mirage"
+        model.save(path)
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            p = subprocess.run(
+                [sys.executable, "-m", "mirage_cli", "track", str(video), "--model", str(path),
+                 "-o", str(Path(tmp) / "poses.csv")],
+                capture_output=True, text=True, cwd=ROOT,
+            )  # fmt: skip
+            walls.append(time.perf_counter() - t0)
+            m = re.search(r"([0-9.]+) frames/s", p.stdout + p.stderr)
+            if p.returncode != 0 or m is None:
+                raise SystemExit(f"mirage track failed: {p.stderr.strip()[-300:]}")
+            rates.append(float(m.group(1)))
+    return float(np.median(rates)), float(np.median(walls))
 
 
 if __name__ == "__main__":
