@@ -1,11 +1,13 @@
 """Per-frame camera pose against a landmark model (brief, section 4.3). Pure core.
 
 Each frame is either *detected* (features matched to the model's keyframes, RANSAC,
-Mirage-S from the best keyframe's or the previous pose) or *flowed* (the previous frame's
-inliers followed with pyramidal Lucas-Kanade, keeping their 3D points, then Mirage-S from
-the previous pose). Flow costs a few milliseconds where detection costs tens, so detection
-runs only every `redetect_every` frames or when the flow weakens; both end in the same
-ok / lost gate, so a frame without enough consistent evidence is `lost`, never a guess.
+Mirage-S from the best keyframe's or the predicted pose) or *flowed* (the last detection's
+inliers followed with pyramidal Lucas-Kanade from the frame they were detected in, keeping
+their 3D points, then Mirage-S from the previous pose). Flow costs a few milliseconds where
+detection costs tens, so detection runs only every `redetect_every` frames, when the flow
+weakens or when a flowed pose leaves the prediction; both end in the same gate, so a frame
+without enough consistent evidence on the landmark itself, or whose honest uncertainty is
+too large, is not `ok`: never a guess.
 """
 
 from __future__ import annotations
@@ -130,14 +132,16 @@ def unambiguous_pose(
 class Tracker:
     """Stateful per-frame tracker; feed frames in order with `process(gray)`.
 
-    Two kinds of detection. While tracking, model points of the keyframes near the
-    predicted pose (constant velocity) are projected and matched only within
-    `guided_radius_px` of their predicted pixel, so repeated texture elsewhere in the model
-    cannot compete. When lost, the frame is *relocalised*: global recognition, descriptor
-    matching, RANSAC on the matches to points without a descriptor twin (repeated texture
-    never votes alone), then a second-hypothesis test (RANSAC again without the first
-    pose's inliers); a distinct second pose with comparable support leaves the frame
-    lost. The final pose is refined over every match consistent with it.
+    Two kinds of detection. While tracking, features are detected in the box where the
+    predicted pose (constant velocity, or the last frame's `uncertain` pose) puts the model
+    (upsampled when small), and model points of the keyframes near the prediction are
+    projected and matched only within `guided_radius_px` of their predicted pixel, so
+    repeated texture elsewhere in the model cannot compete. When lost, the frame is
+    *relocalised*: global recognition, descriptor matching, RANSAC on the matches to points
+    that are neither twins (repeated texture) nor ground, then a second-hypothesis test
+    (RANSAC again without the first pose's inliers); a distinct second pose with
+    comparable support makes the frame `ambiguous`. The final pose is refined over every
+    match consistent with it.
     """
 
     def __init__(self, model: LandmarkModel, camera: Camera, settings: TrackSettings):
