@@ -298,6 +298,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="few trials, under a minute")
     ap.add_argument("--trials", type=int, default=None, help="trials per configuration")
     ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--few", action="store_true", help="only the few-points tracking table")
     args = ap.parse_args(argv)
     trials = args.trials or (25 if args.quick else 200)
     rng = np.random.default_rng(args.seed)
@@ -305,6 +306,11 @@ def main(argv=None) -> int:
     ns = (3, 4, 6, 10, 50, 200)
     sigmas = (0.0, 1.0) if args.quick else (0.0, 0.5, 1.0, 2.0, 4.0)
     print(f"# Mirage-S solver benchmark (seed {args.seed}, {trials} trials per row)")
+    few = [(n, 1.0, 2.0) for n in range(4, 9)]  # tracking: the previous pose is ~2 deg off
+    table("Few points from the tracking reference (2 deg off), non-planar", few, rng, trials,
+          SOLVERS)  # fmt: skip
+    if args.few:
+        return 0
     table(
         "Non-planar, reference 15 deg off, no outliers",
         [(n, s, 15.0) for n in ns for s in sigmas],
