@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from . import signals
 from .camera import Camera
 from .errors import InputError
 from .features import DetectorSettings, knn2, make_matcher
@@ -210,7 +211,11 @@ class LandmarkModel:
             },
         }
         with atomic_path(path, suffix=".mirage") as tmp:
-            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as z:
+            # a signal inside ZipFile() would leave a half-built object whose __del__ prints
+            # a traceback on stderr: hold it until the object is whole (then it is raised)
+            with signals.deferred():
+                zf = zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1)
+            with zf as z:
                 z.writestr("manifest.json", json.dumps(manifest, indent=1))
                 for k, a in arrays.items():
                     buf = io.BytesIO()
