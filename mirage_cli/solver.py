@@ -389,10 +389,8 @@ def sandwich_covariance(
     xy = camera.undistort_points(points_2d)
     r = (xy - pred) * np.array([camera.fx, camera.fy])
     w = np.ones(len(X))
-    if huber_px is not None:  # as refine.robust_weights, without its gross-outlier cut
-        r2 = (r * r).sum(1)
-        k2 = max(huber_px**2, 6.25 * np.median(r2) / _k.RAYLEIGH_MEDIAN**2)
-        w = np.minimum(np.sqrt(k2 / np.maximum(r2, 1e-300)), 1.0)
+    if huber_px is not None:  # the fit's own weights, without its gross-outlier cut
+        _k.robust_weights((r * r).sum(1), True, float(huber_px), math.inf, w)
     H = np.einsum("n,nki,nkj->ij", w, J, J)
     try:
         Hi = np.linalg.inv(H)

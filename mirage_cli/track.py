@@ -147,7 +147,6 @@ class Tracker:
     def __init__(self, model: LandmarkModel, camera: Camera, settings: TrackSettings):
         self.model, self.camera, self.s = model, camera, settings
         self.detector = make_detector(model.detector)
-        self.prev_gray: np.ndarray | None = None
         self.prev_pose: Pose | None = None
         self.velocity: Pose | None = None  # T_k @ T_{k-1}^-1 of the last two ok frames
         self.since_detect = 0
@@ -164,6 +163,7 @@ class Tracker:
         self._kf_cache: dict[int, tuple] = {}
         self.twins = point_twins(model)
         self.on_landmark = ~ground_points(model.points)
+        self.votes = ~self.twins & self.on_landmark  # may decide a relocalisation
         self._sigma_res_m = float("nan")  # last gate's position sigma from residuals alone
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
         self._uncertain_pose: Pose | None = None
@@ -190,7 +190,6 @@ class Tracker:
             if res.ok:
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
-        self.prev_gray = gray
         if res.ok:
             if self.prev_pose is not None and self.lost_run == 0:
                 self.velocity = res.pose @ self.prev_pose.inverse()
@@ -279,8 +278,8 @@ class Tracker:
     def _detect(self, gray: np.ndarray) -> FrameRecord:
         self.since_detect = 0
         pred = self._predicted()
-        box = self._landmark_box(pred, gray.shape) if pred is not None else None
-        if box is not None:  # tracking: detect only where the landmark is predicted
+        box = self._model_box(pred, gray.shape) if pred is not None else None
+        if box is not None:  # tracking: detect only where the model is predicted
             x0, y0, x1, y1 = box
             crop = gray[y0:y1, x0:x1]
             up = 1.0
@@ -302,7 +301,7 @@ class Tracker:
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
 
-    def _landmark_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
+    def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
         """Pixel box (x0, y0, x1, y1) around the model's points as the predicted pose sees
         them, with a margin: nothing outside it can match. None when it would cover most of
         the frame anyway (or too few points are predicted in front), so the whole frame is
@@ -363,7 +362,7 @@ class Tracker:
         uv, X = kps[qi].astype(np.float64), X_all[ti]
         # matches to repeated texture or to the ground do not vote
         land = self.on_landmark[pid_all[ti]]
-        unique = ~self.twins[pid_all[ti]] & land
+        unique = self.votes[pid_all[ti]]
         lost = FrameRecord(Status.LOST, matches=len(qi), mode="relocalise")
         if unique.sum() < self.s.min_inliers:
             return lost
@@ -415,7 +414,6 @@ class Tracker:
         self._sigma_res_m = est.sigma_pos_m  # what the residuals alone say (flow check)
         if not s2 > 0:
             return est.sigma_pos_m, est.sigma_rot_deg
-        n_model = self.s.model_error_points
         res = est.covariance
         if points is not None:
             X, uv = points
@@ -424,7 +422,7 @@ class Tracker:
             if np.all(np.isfinite(sw)):
                 res = sw
         self._sigma_res_m = float(np.sqrt(max(np.trace(res[3:, 3:]), 0.0)))
-        cov = res + est.covariance * (self.model_rms_px**2 * n / (n_model * s2))
+        cov = res + est.covariance * (self.model_rms_px**2 * n / (self.s.model_error_points * s2))
         pos = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
         return pos, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
 

@@ -231,6 +231,12 @@ def test_ransac_is_reproducible():
 # --- covariance ---------------------------------------------------------------------------
 
 
+def _rms_ratios(er, ep, sr, sp):
+    """RMS error / RMS reported 1-sigma, (rotation, position)."""
+    rot = math.sqrt(np.mean(np.square(er)) / np.mean(np.square(sr)))
+    return rot, math.sqrt(np.mean(np.square(ep)) / np.mean(np.square(sp)))
+
+
 def test_covariance_is_honest():
     """Empirical RMS error over 400 trials matches the reported 1-sigma within 20%."""
     rng = np.random.default_rng(41)
@@ -247,8 +253,7 @@ def test_covariance_is_honest():
         sp.append(est.sigma_pos_m)
         assert est.covariance.shape == (6, 6)
         assert np.allclose(est.covariance, est.covariance.T)
-    rot = math.sqrt(np.mean(np.square(er)) / np.mean(np.square(sr)))
-    pos = math.sqrt(np.mean(np.square(ep)) / np.mean(np.square(sp)))
+    rot, pos = _rms_ratios(er, ep, sr, sp)
     assert 0.8 < rot < 1.2 and 0.8 < pos < 1.2, (rot, pos)
 
 
@@ -269,8 +274,7 @@ def test_sandwich_covariance_is_honest_and_sees_a_bad_lever():
         r, t = errs(est.pose, truth)
         a, b = _sandwich_sigma(est, X, u)
         er.append(r), ep.append(t), sr.append(a), sp.append(b)
-    rot = math.sqrt(np.mean(np.square(er)) / np.mean(np.square(sr)))
-    pos = math.sqrt(np.mean(np.square(ep)) / np.mean(np.square(sp)))
+    rot, pos = _rms_ratios(er, ep, sr, sp)
     assert 0.8 < rot < 1.25 and 0.8 < pos < 1.25, (rot, pos)
     # a tight cluster of 20 good points plus 2 far-off points 2.5 px wrong: the solver's
     # s^2 barely notices, the sandwich does
