@@ -33,7 +33,9 @@ from .trajectory import FrameRecord, Status
 class TrackSettings:
     method: str = "mirage-s"
     redetect_every: int = 5  # frames between full detections while flow holds
-    min_inliers: int = 15  # fewer consistent points: lost
+    min_inliers: int = 15  # fewer consistent points without a prediction: lost
+    min_track_inliers: int = 6  # while tracking (a prediction to match around and start
+    # Mirage-S from) the pose's uncertainty decides, so a few well-spread points suffice
     min_inlier_ratio: float = 0.5  # of the matches, at detection
     min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
     max_rmse_px: float = 2.0
@@ -63,7 +65,7 @@ class TrackSettings:
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
     distinct_deg: float = 5.0  # different hypotheses
     model_error_points: float = 300.0  # model/keypoint errors average like this many points
-    max_sigma_pos_m: float = 0.03  # a larger 1-sigma uncertainty is `uncertain`, not ok
+    max_sigma_pos_m: float = 0.10  # a larger 1-sigma uncertainty is `uncertain`, not ok
     max_sigma_rot_deg: float = 1.5
     max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance
     seed: int = 0
@@ -288,7 +290,7 @@ class Tracker:
                 crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
             kps, desc = detect(crop, self.detector)
             kps = kps / np.float32(up) + np.array([x0, y0], np.float32)
-            if len(kps) >= self.s.min_inliers:
+            if len(kps) >= self.s.min_track_inliers:
                 res = self._guided(kps, desc, pred)
                 if res.ok:
                     return res
@@ -332,7 +334,7 @@ class Tracker:
         radius = self.s.guided_radius_px * (1 + min(self.lost_run, 3))
         qi, ci = guided_match(kps, desc, uvp, d_all[front], pid_all[front], radius, self.s.ratio)
         ci = np.flatnonzero(front)[ci]
-        if len(qi) < self.s.min_inliers:
+        if len(qi) < self.s.min_track_inliers:
             return FrameRecord(Status.LOST, matches=len(qi), mode="detect")
         uv, X = kps[qi].astype(np.float64), X_all[ci]
         kf = int(np.argmax(np.bincount(kf_of[ci], minlength=len(self.model.keyframes))))
@@ -450,10 +452,13 @@ class Tracker:
         if not est.success:
             return res
         res.sigma_pos_m, res.sigma_rot_deg = self._sigmas(est, ninl, points)
-        if ninl < self.s.min_inliers or ninl < self.s.min_inlier_ratio * n:
+        # with a prediction a few points can make an ok pose (their uncertainty decides
+        # below); without one, a pose needs the numbers that make RANSAC's answer unique
+        need = self.s.min_inliers if mode == "relocalise" else self.s.min_track_inliers
+        if ninl < need or ninl < self.s.min_inlier_ratio * n:
             return res
         n_land = ninl if on_landmark is None else int((est.inliers & on_landmark).sum())
-        if n_land < self.s.min_landmark_inliers:
+        if n_land < min(self.s.min_landmark_inliers, need):
             return res  # the ground (or background) alone: the landmark is not in view
         if not est.rmse_px <= self.s.max_rmse_px:
             return res

@@ -69,7 +69,13 @@ def also_write_options(f):
     help="Full feature detection at least every N frames (optical flow between).",
 )
 @click.option("--no-flow", is_flag=True, help="Detect and match in every frame (slower).")
-@shown("--min-inliers", type=BoundedInt(min=4), default=TrackSettings.min_inliers)
+@shown(
+    "--min-inliers",
+    type=BoundedInt(min=4),
+    default=TrackSettings.min_inliers,
+    help="Fewest inliers of a pose found without a prediction (while tracking: 6, and the "
+    "pose's uncertainty decides).",
+)
 @shown(
     "--max-rmse",
     type=FiniteFloat(min=0, min_open=True),

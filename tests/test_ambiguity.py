@@ -138,3 +138,34 @@ def test_ground_alone_is_not_ok(model):
     few[: TrackSettings().min_landmark_inliers] = True
     assert tr._gate(est, 40, "detect", False, few).status == "ok"
     assert tr._gate(est, 40, "detect", False, ~ground).status == "ok"
+
+
+def _track_gate(tr, X, uv, mode, reference):
+    from mirage_cli.solver import RefineOptions, solve_pose
+
+    s = tr.s
+    est = solve_pose(X, uv, tr.camera, reference, s.method,
+                     refine=RefineOptions(reject_px=s.reject_px, huber_px=s.huber_px))  # fmt: skip
+    return tr._gate(est, len(X), mode, False, np.ones(len(X), bool), (X, uv))
+
+
+def test_few_good_points_keep_a_tracked_pose_many_clustered_ones_do_not(model):
+    """The ok decision while tracking is the pose's uncertainty, not a point count: 6-8
+    well-spread inliers from the predicted pose are ok; 40 in a 2 cm patch are not."""
+    tr = Tracker(model, model.camera, TrackSettings())
+    truth = look_at([1.5, 0.0, 0.6], [0, 0, 0.3])
+    off = Pose(cv2.Rodrigues(np.radians([1.0, -1.5, 0.5]))[0], np.zeros(3)) @ truth  # prediction
+    rng = np.random.default_rng(7)
+    for n in (6, 7, 8):
+        X = np.array([0, 0, 0.3]) + rng.uniform(-0.3, 0.3, (n, 3))
+        uv = tr.camera.project(X, truth) + rng.normal(0, 0.3, (n, 2))
+        res = _track_gate(tr, X, uv, "detect", off)
+        assert res.status == "ok", (n, res.status, res.sigma_pos_m)
+        assert res.pose.distance_to(truth) < 3 * res.sigma_pos_m + 1e-4
+        assert res.pose.angle_to(truth) < 3 * res.sigma_rot_deg + 1e-3
+        # without a prediction (relocalisation) so few points are not enough
+        assert _track_gate(tr, X, uv, "relocalise", off).status == "lost"
+    X = np.array([0.1, 0.0, 0.3]) + rng.uniform(-0.01, 0.01, (40, 3))
+    uv = tr.camera.project(X, truth) + rng.normal(0, 0.3, (40, 2))
+    res = _track_gate(tr, X, uv, "detect", off)
+    assert res.status == "uncertain" and res.sigma_pos_m > 0.015, res.sigma_pos_m
