@@ -395,7 +395,7 @@ def _numbers(path, what: str, width: int) -> np.ndarray:
     return a
 
 
-def _pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.DataFrame:
+def pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.DataFrame:
     """A pose-CSV table of ok rows (quaternions normalised, angles derived)."""
     import pandas as pd
 
@@ -413,7 +413,7 @@ def read_tum(path) -> pd.DataFrame:
     a = _numbers(path, "TUM", 8)
     validate.unique_times(a[:, 0], path, "TUM")
     q = validate.unit_quaternion_rows(a[:, [7, 4, 5, 6]], path, "TUM")
-    return _pose_table(range(len(a)), a[:, 0], a[:, 1:4], q)
+    return pose_table(range(len(a)), a[:, 0], a[:, 1:4], q)
 
 
 def read_kitti(path) -> pd.DataFrame:
@@ -423,7 +423,7 @@ def read_kitti(path) -> pd.DataFrame:
     T = _numbers(path, "KITTI", 12).reshape(-1, 3, 4)
     validate.rotation_rows(T[:, :, :3], path, "KITTI")
     q = Rotation.from_matrix(T[:, :, :3]).as_quat()[:, [3, 0, 1, 2]]
-    return _pose_table(range(len(T)), np.nan, T[:, :, 3], q)
+    return pose_table(range(len(T)), np.nan, T[:, :, 3], q)
 
 
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw (mirage track, camera-to-world)\n"
