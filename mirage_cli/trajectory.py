@@ -262,10 +262,13 @@ def guess_format(path) -> str:
     return "csv"
 
 
-def match_times(truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01) -> pd.DataFrame:
+def match_times(
+    truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01, offset_s: float = 0.0
+) -> pd.DataFrame:
     """Truth rows renamed to the pose frames nearest in time (within `max_dt` s, one truth
-    row per frame), for truth that has times but not the poses' frame ids (TUM)."""
-    t = truth["time_s"].to_numpy(float)
+    row per frame), for truth that has times but not the poses' frame ids (TUM, a bag);
+    `offset_s` is added to the truth times first (their time_s is returned shifted)."""
+    t = truth["time_s"].to_numpy(float) + offset_s
     pt = poses["time_s"].to_numpy(float)
     if not (np.isfinite(t).all() and np.isfinite(pt).any()):
         raise InputError("matching truth by time needs times in both files (time_s column)")
@@ -281,6 +284,7 @@ def match_times(truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01) 
             f"{max_dt * 1000:g} ms; is it the truth of this video?"
         )
     rows = truth.iloc[order[near[hit]]].copy()
+    rows["time_s"] = t[near[hit]]
     rows["frame"] = poses["frame"].to_numpy()[hit]
     return rows.reset_index(drop=True)
 
