@@ -19,8 +19,9 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
+from mirage_cli import bags as bags_module
 from mirage_cli import cli
-from mirage_cli.bags import BagRef
+from mirage_cli.bags import BagRef, read_poses
 from mirage_cli.camera import Camera
 from mirage_cli.frames import FrameSource
 
@@ -65,13 +66,14 @@ class BagWriter:
         ser = self.ts.serialize_ros1 if self.ros1 else self.ts.serialize_cdr
         self.w.write(self.cons[topic], int(round(t * 1e9)), ser(message, typ))
 
-    def image(self, topic: str, t: float, img: np.ndarray, encoding: str) -> None:
+    def image(self, topic: str, t: float, img: np.ndarray, encoding: str, rows=None) -> None:
+        """A raw image; `rows` overrides the height the message claims (a damaged one)."""
         h, w = img.shape[:2]
         data = np.ascontiguousarray(img).reshape(-1).view(np.uint8)
         m = self.msg(
             "sensor_msgs/msg/Image",
             header=self.header(t),
-            height=h,
+            height=rows or h,
             width=w,
             encoding=encoding,
             is_bigendian=0,
@@ -276,6 +278,26 @@ def test_compressed_raw_and_bayer_images_decode_to_the_frame(orbit, tmp_path):
         assert err.max() < 6 and swapped[[0, 2]].min() > 2 * err.max(), (pat, err, swapped)
 
 
+def test_storage_files_frame_ranges_and_damaged_messages(orbit, bags, tmp_path):
+    # the .db3 / .mcap file itself reads as its bag folder does
+    for kind in ("sqlite3", "mcap"):
+        (storage,) = bags[kind].glob(f"*.{'db3' if kind == 'sqlite3' else 'mcap'}")
+        src = FrameSource([storage])
+        assert src.count == N and src.camera() is not None
+        frames = list(src.frames(start=1, end=4, every=2))  # --start / --end / --every
+        assert [f.index for f in frames] == [1, 3] and [f.id for f in frames] == [1, 3]
+        assert all(np.array_equal(f.image, orbit[f.index]) for f in frames)
+        assert frames[0].time_s == pytest.approx(T0 + 1 / 30, abs=1e-6)
+    # a truncated message is a damaged frame; the frames after it decode
+    path = bag_path(tmp_path, "damaged", "ros1")
+    with BagWriter(path, "ros1") as w:
+        for i in range(3):  # message 1 says 480 rows, its data hold 100
+            w.image(IMG, T0 + i, orbit[i][: 100 if i == 1 else 480], "bgr8", rows=480)
+    frames = list(FrameSource([path]).frames(gray=True))
+    assert [f.image is None for f in frames] == [False, True, False]
+    assert np.array_equal(frames[2].image, cv2.cvtColor(orbit[2], cv2.COLOR_BGR2GRAY))
+
+
 def test_topic_selection_and_bad_bags_are_one_line_errors(orbit, bags, tmp_path, sample_model):
     out = tmp_path / "p.csv"
     two = bag_path(tmp_path, "two", "ros1")
@@ -389,3 +411,47 @@ def test_tum_and_bag_truth_with_offset_and_transform_match_the_pose_csv_truth(tr
     )  # fmt: skip
     np.testing.assert_allclose(got[cols], ref[cols], rtol=0, atol=1e-9)
     assert summary["frames_without_truth"] == 0
+
+
+def test_every_pose_message_type_reads_as_the_same_table(tmp_path):
+    t, c, q = body_poses(list(range(N)))
+    path = bag_path(tmp_path, "types", "ros1")
+    with BagWriter(path, "ros1") as w:
+        m = w.msg
+        for i in range(N):
+            point = m("geometry_msgs/msg/Point", x=c[i, 0], y=c[i, 1], z=c[i, 2])
+            vec = m("geometry_msgs/msg/Vector3", x=c[i, 0], y=c[i, 1], z=c[i, 2])
+            quat = m("geometry_msgs/msg/Quaternion", x=q[i, 0], y=q[i, 1], z=q[i, 2], w=q[i, 3])
+            pose = m("geometry_msgs/msg/Pose", position=point, orientation=quat)
+            cov = m("geometry_msgs/msg/PoseWithCovariance", pose=pose, covariance=np.zeros(36))
+            zero = m("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=0.0)
+            twist = m(
+                "geometry_msgs/msg/TwistWithCovariance",
+                twist=m("geometry_msgs/msg/Twist", linear=zero, angular=zero),
+                covariance=np.zeros(36),
+            )
+            h = w.header(t[i])
+            msgs = {
+                "geometry_msgs/msg/PoseStamped": m(
+                    "geometry_msgs/msg/PoseStamped", header=h, pose=pose
+                ),
+                "geometry_msgs/msg/PoseWithCovarianceStamped": m(
+                    "geometry_msgs/msg/PoseWithCovarianceStamped", header=h, pose=cov
+                ),
+                "nav_msgs/msg/Odometry": m(
+                    "nav_msgs/msg/Odometry", header=h, child_frame_id="body", pose=cov, twist=twist
+                ),
+                "geometry_msgs/msg/TransformStamped": m(
+                    "geometry_msgs/msg/TransformStamped",
+                    header=h,
+                    child_frame_id="body",
+                    transform=m("geometry_msgs/msg/Transform", translation=vec, rotation=quat),
+                ),
+            }
+            for typ, msg in msgs.items():
+                w.write("/" + typ.split("/")[-1], typ, t[i], msg)
+    tables = [read_poses(path, "/" + typ.split("/")[-1]) for typ in bags_module.POSE_TYPES]
+    for df in tables:
+        np.testing.assert_allclose(df["time_s"], t, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(df[["x_m", "y_m", "z_m"]], c, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(df[["qx", "qy", "qz", "qw"]], q, rtol=0, atol=1e-12)
