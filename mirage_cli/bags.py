@@ -164,8 +164,8 @@ def pick_topic(path, found: dict[str, str], kinds, chosen: str | None, what: str
             return chosen
         if chosen in found:
             raise InputError(
-                f"topic {chosen} in {path} is a {found[chosen]}, not {what} "
-                f"({', '.join(names) or 'there is none'})"
+                f"topic {chosen} in {path} is a {found[chosen]}; "
+                f"{what} topics: {', '.join(names) or 'none'}"
             )
         raise InputError(
             f"no topic {chosen} in {path} ({what} topics: {', '.join(names) or 'none'})"
@@ -306,10 +306,11 @@ def camera_info_topic(found: dict[str, str], image_topic: str) -> str | None:
     return next(iter(infos)) if len(infos) == 1 else None
 
 
-def camera_from_info(msg, where: str) -> Camera | None:
+def camera_from_info(msg, where: str, size: tuple[int, int] | None = None) -> Camera | None:
     """A Camera from a `sensor_msgs/CameraInfo` (ROS 1 K/D or ROS 2 k/d spelling); None for
     an uncalibrated one (K all zero). ROS plumb_bob and rational_polynomial coefficients
-    are OpenCV's order; equidistant is OpenCV's fisheye model."""
+    are OpenCV's order; equidistant is OpenCV's fisheye model. A message without a size
+    (0x0, some drivers) takes `size`, the images' (width, height)."""
     K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, float)
     D = np.asarray(msg.d if hasattr(msg, "d") else msg.D, float)
     if K.size != 9 or not K[0] > 0:
@@ -321,8 +322,11 @@ def camera_from_info(msg, where: str) -> Camera | None:
             f"{where}: distortion_model {msg.distortion_model!r} is not supported "
             f"(use one of {', '.join(LENS_MODELS)})"
         )
+    w, h = int(msg.width), int(msg.height)
+    if (w, h) == (0, 0) and size is not None:
+        w, h = size
     try:
-        return Camera(K.reshape(3, 3), D, int(msg.width), int(msg.height), model=model)
+        return Camera(K.reshape(3, 3), D, w, h, model=model)
     except InputError as e:
         raise InputError(f"{where}: {e}") from None
 
@@ -335,7 +339,8 @@ def bag_camera(it: ImageTopic) -> Camera | None:
             return None
         cons = [c for c in r.connections if c.topic == topic]
         for con, _, raw in r.messages(connections=cons):
-            return camera_from_info(r.deserialize(raw, con.msgtype), f"{topic} in {it.path}")
+            msg = r.deserialize(raw, con.msgtype)
+            return camera_from_info(msg, f"{topic} in {it.path}", it.size)
     return None
 
 
