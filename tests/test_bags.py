@@ -455,3 +455,20 @@ def test_every_pose_message_type_reads_as_the_same_table(tmp_path):
         np.testing.assert_allclose(df["time_s"], t, rtol=0, atol=1e-6)
         np.testing.assert_allclose(df[["x_m", "y_m", "z_m"]], c, rtol=0, atol=1e-12)
         np.testing.assert_allclose(df[["qx", "qy", "qz", "qw"]], q, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "opts,message",
+    [
+        (["--truth-transform", "1 2 3"], "expected 7 numbers 'x y z qw qx qy qz'"),
+        (["--truth-transform", "0 0 0 2 0 0 0"], "the quaternion qw qx qy qz has norm 2"),
+        (["--t-offset", "0.5"], "--t-offset applies to truth matched by time"),
+        (["--truth-topic", "/mocap"], "--truth-topic /mocap picks a pose topic of a ROS bag"),
+    ],
+)
+def test_bad_truth_options_are_one_line_errors(opts, message, tmp_path):
+    poses = SAMPLE / "orbit_truth.csv"
+    code, err = mirage("report", poses, "--path", SAMPLE / "desired_path.yaml", "--truth",
+                       poses, *opts, "-o", tmp_path / "r.csv")  # fmt: skip
+    assert_error(code, err, message)
+    assert not (tmp_path / "r.csv").exists()
