@@ -129,6 +129,7 @@ def resolve_inputs(inputs: Iterable, what: str = "images") -> MediaInput:
             hits = [Path(h) for h in glob.glob(str(p), recursive=True)]
             images += [h for h in hits if h.is_file() and is_image_path(h)]
             videos += [h for h in hits if h.is_file() and h.suffix.lower() in VIDEO_EXTS]
+            videos += [BagRef(h) for h in hits if is_bag_path(h)]
         else:
             raise InputError(f"input {p} not found")
     if videos:
