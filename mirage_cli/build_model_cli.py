@@ -16,11 +16,20 @@ from .build_model import (
     views_from_inputs,
 )
 from .camera import Camera
-from .cli_options import FILE, camera_option, file_option, inputs_argument, output_option, shown
+from .cli_options import (
+    FILE,
+    camera_option,
+    file_option,
+    inputs_argument,
+    output_option,
+    shown,
+    topic_option,
+)
 from .config import default_of
 from .errors import InputError
 from .features import DETECTORS, DetectorSettings
 from .fileio import check_writable, refuse_overwrite
+from .frames import FrameSource, resolve_inputs, with_topic
 from .model import LandmarkModel
 from .plotting import TOP_VIEW_DPI, save_png, top_view_figure
 from .validate import BoundedInt, FiniteFloat
@@ -61,7 +70,8 @@ class _Stages:
 
 @click.command("build-model")
 @inputs_argument()
-@camera_option("Camera YAML (from mirage calibrate).", required=True)
+@camera_option("Camera YAML (from mirage calibrate) [default: a ROS bag's camera_info].")
+@topic_option()
 @file_option(
     "--poses",
     "poses_path",
@@ -102,6 +112,7 @@ class _Stages:
 def build_model_cmd(
     inputs,
     camera_path,
+    topic,
     poses_path,
     board_path,
     output,
@@ -130,7 +141,8 @@ def build_model_cmd(
     )
     check_writable(output)
     t0 = time.perf_counter()
-    camera = Camera.load(camera_path)
+    sources = with_topic(inputs, topic)  # a bag input carries its --topic
+    camera = Camera.load(camera_path) if camera_path else _bag_camera(sources)
     board = load_board(board_path) if board_path else None
     settings = BuildSettings(
         detector=DetectorSettings(detector, nfeatures),
@@ -142,17 +154,32 @@ def build_model_cmd(
     stages = _Stages()
     try:
         views = views_from_inputs(
-            inputs, camera, settings, poses_path, board, lambda k, n: stages("views", k, n)
+            sources, camera, settings, poses_path, board, lambda k, n: stages("views", k, n)
         )
         res = build_model(views, camera, settings, stages)
     finally:
         stages.close()
     source = {
         "inputs": list(inputs),
+        "topic": topic,
         "poses": poses_path,
         "board": board.to_yaml() if board else None,
     }
     save_model(res, output, source, t0)
+
+
+def _bag_camera(inputs) -> Camera:
+    """Without --camera: the camera_info of a bag input's image topic."""
+    media = resolve_inputs(inputs, "images of the landmark")
+    if not media.is_bag:
+        raise InputError("give --camera FILE (the camera YAML from mirage calibrate)")
+    src = FrameSource([media.video])
+    camera = src.camera()
+    if camera is None:
+        raise InputError(
+            f"{media.video} has no calibrated camera_info for {src.bag.topic}; give --camera FILE"
+        )
+    return camera
 
 
 def save_model(res, output, source: dict, t0: float) -> None:

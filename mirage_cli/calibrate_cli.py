@@ -9,10 +9,10 @@ from .boards import MARKER_FRACTION, Board, parse_size
 from .calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
 from .calibrate import calibrate as run_calibration
 from .camera import Camera
-from .cli_options import file_option, inputs_argument, output_option, shown
+from .cli_options import file_option, inputs_argument, output_option, shown, topic_option
 from .config import default_of
 from .fileio import check_writable, refuse_overwrite
-from .frames import FrameSource, resolve_inputs
+from .frames import FrameSource, resolve_inputs, with_topic
 from .plotting import CALIBRATION_DPI, calibration_figure, save_png
 from .validate import BoundedInt, FiniteFloat
 
@@ -109,6 +109,7 @@ def _positive_option(*decls: str, **kw):
     default=None,
     help="Detection threads [default: CPUs, max 4].",
 )
+@topic_option()
 def calibrate(
     inputs,
     board,
@@ -129,6 +130,7 @@ def calibrate(
     report,
     subpix_window,
     workers,
+    topic,
 ):
     """Calibrate the camera from chessboard or ChArUco images, a folder, a glob or a video.
 
@@ -149,7 +151,7 @@ def calibrate(
         reject_factor=reject_factor,
         max_view_error_px=max_view_error,
     )
-    media = resolve_inputs(inputs, what="board images")
+    media = resolve_inputs(with_topic(inputs, topic), what="board images")
     if media.is_video:
         n = FrameSource([media.video]).count
         with ui.progress((n + every - 1) // every if n else None, "detecting") as bar:

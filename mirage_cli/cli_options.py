@@ -33,3 +33,14 @@ def camera_option(help: str, required: bool = False):
 def shown(*decls: str, **kw):
     """An option whose default --help shows."""
     return click.option(*decls, show_default=True, **kw)
+
+
+def topic_option():
+    """--topic NAME: the image topic of a ROS bag input (the parameter topic)."""
+    return click.option(
+        "--topic",
+        default=None,
+        metavar="NAME",
+        help="ROS bag input: the image topic to read (sensor_msgs/Image or CompressedImage) "
+        "[default: the bag's only image topic].",
+    )

@@ -1,9 +1,11 @@
-"""Frames from a video, image files, a folder or a glob: the one reader of every command.
+"""Frames from a video, a ROS bag, image files, a folder or a glob: the one reader of every
+command.
 
-INPUT arguments (files, folders, globs, or one video) resolve to a naturally sorted image
-list or a video; images are read with a clear error instead of OpenCV's silent None; and
-`FrameSource` yields timed frames of either kind, reporting a damaged stretch of a video
-frame by frame (image None) and decoding on after it.
+INPUT arguments (files, folders, globs, one video or one ROS bag) resolve to a naturally
+sorted image list, a video or a bag (`bags.BagRef`, which stands where a video path does);
+images are read with a clear error instead of OpenCV's silent None; and `FrameSource`
+yields timed frames of any kind, reporting a damaged stretch of a video (or a damaged bag
+message) frame by frame (image None) and decoding on after it.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
+from . import bags
+from .bags import BagRef, is_bag_path
 from .camera import Camera
 from .errors import InputError
 
@@ -40,14 +44,19 @@ _GLOB_CHARS = re.compile(r"[*?\[]")
 
 @dataclass
 class MediaInput:
-    """What INPUT arguments resolved to: a sorted list of images, or one video."""
+    """What INPUT arguments resolved to: a sorted list of images, or one video (or bag)."""
 
     images: list[Path] = field(default_factory=list)
-    video: Path | None = None
+    video: Path | BagRef | None = None
 
     @property
     def is_video(self) -> bool:
+        """A video or a bag: one stream of numbered frames."""
         return self.video is not None
+
+    @property
+    def is_bag(self) -> bool:
+        return isinstance(self.video, BagRef)
 
 
 def natural_key(path: Path) -> list:
@@ -73,16 +82,41 @@ def is_video_path(path: Path) -> bool:
     return bool(ok)
 
 
-def resolve_inputs(inputs: Iterable[str], what: str = "images") -> MediaInput:
-    """Expand files, folders and globs into sorted image paths, or detect one video."""
-    inputs = [str(i) for i in inputs]
+def with_topic(inputs: Iterable, topic: str | None) -> list:
+    """INPUT with `--topic` attached to its bag; --topic without a bag is an error (it would
+    silently do nothing)."""
+    inputs = list(inputs)
+    if topic is None:
+        return inputs
+    out = [
+        BagRef(Path(i).expanduser(), topic)
+        if not isinstance(i, BagRef) and is_bag_path(Path(i).expanduser())
+        else i
+        for i in inputs
+    ]
+    if not any(isinstance(i, BagRef) for i in out):
+        raise InputError(
+            f"--topic {topic} selects the image topic of a ROS bag, but the input is not one "
+            "(a .bag file, a ROS 2 bag folder with metadata.yaml, a .db3 or .mcap file)"
+        )
+    return [BagRef(i.path, topic) if isinstance(i, BagRef) else i for i in out]
+
+
+def resolve_inputs(inputs: Iterable, what: str = "images") -> MediaInput:
+    """Expand files, folders and globs into sorted image paths, or detect one video or bag."""
+    inputs = [i if isinstance(i, BagRef) else str(i) for i in inputs]
     if not inputs:
         raise InputError(f"no input given; pass {what} (files, a folder or a glob) or a video")
     images: list[Path] = []
-    videos: list[Path] = []
+    videos: list[Path | BagRef] = []
     for arg in inputs:
+        if isinstance(arg, BagRef):
+            videos.append(arg)
+            continue
         p = Path(arg).expanduser()
-        if p.is_dir():
+        if is_bag_path(p):
+            videos.append(BagRef(p))
+        elif p.is_dir():
             images += [f for f in p.iterdir() if f.is_file() and is_image_path(f)]
         elif p.is_file():
             if is_image_path(p):
@@ -95,11 +129,14 @@ def resolve_inputs(inputs: Iterable[str], what: str = "images") -> MediaInput:
             hits = [Path(h) for h in glob.glob(str(p), recursive=True)]
             images += [h for h in hits if h.is_file() and is_image_path(h)]
             videos += [h for h in hits if h.is_file() and h.suffix.lower() in VIDEO_EXTS]
+            videos += [BagRef(h) for h in hits if is_bag_path(h)]
         else:
             raise InputError(f"input {p} not found")
     if videos:
         if len(videos) > 1 or images:
-            raise InputError("give either images or a single video, not both / several videos")
+            raise InputError(
+                "give either images or a single video (or bag), not both / several videos"
+            )
         return MediaInput(video=videos[0])
     images = sorted(set(images), key=natural_key)
     if not images:
@@ -154,18 +191,26 @@ def name_times(paths: list[Path]) -> np.ndarray | None:
 
 
 class FrameSource:
-    """Frames of one video or of an image sequence, with times, in order.
+    """Frames of one video, one bag's image topic or an image sequence, with times, in order.
 
     Image sequences are timed by `fps` (time = index / fps) when given, else by their names
     when those are timestamps (`name_times`; the images are then ordered by time), else
-    their times are NaN. A video is timed by its stream.
+    their times are NaN. A video is timed by its stream, a bag by its header stamps (the
+    frame is the message's index in the topic).
     """
 
-    def __init__(self, inputs: Iterable[str | Path], what: str = "a video or images", fps=None):
+    def __init__(self, inputs: Iterable, what: str = "a video or images", fps=None):
         media = resolve_inputs(inputs, what)
         self.video, self.images = media.video, media.images
         self.times: np.ndarray | None = None
         self._size: tuple[int, int] | None = None
+        self.bag: bags.ImageTopic | None = None
+        if media.is_bag:
+            if fps:
+                raise InputError("--fps is for image sequences; a ROS bag has header stamps")
+            self.bag = bags.image_topic(self.video)
+            self.fps, self.count, self._size = self.bag.fps, self.bag.count, self.bag.size
+            return
         if self.video is not None:
             if fps:
                 raise InputError("--fps is for image sequences; a video has its own frame rate")
@@ -197,6 +242,10 @@ class FrameSource:
     def is_video(self) -> bool:
         return self.video is not None
 
+    def camera(self) -> Camera | None:
+        """The camera a bag's camera_info gives its image topic; None for other sources."""
+        return bags.bag_camera(self.bag) if self.bag is not None else None
+
     @property
     def size(self) -> tuple[int, int]:
         """(width, height): the video's, or the first decodable image's."""
@@ -218,6 +267,10 @@ class FrameSource:
         """Frames start, start + every, ... before `end`; undecodable ones with image None."""
         if every < 1:
             raise InputError(f"frame step must be >= 1, got {every}")
+        if self.bag is not None:
+            for i, t, img in bags.image_frames(self.bag, start, end, every, gray):
+                yield Frame(i, i, t, img)
+            return
         if self.video is not None:
             yield from self._video_frames(start, end, every, gray)
             return

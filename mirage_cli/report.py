@@ -164,6 +164,8 @@ def summarize(table: pd.DataFrame, with_truth: bool, truth: pd.DataFrame | None 
         names += TRUTH_COLUMNS
         if truth is not None:
             s["truth_frames"] = int(truth["status"].notna().sum())
+            # excluded from the truth errors: no truth row (or none within the time tolerance)
+            s["frames_without_truth"] = int(n - s["truth_frames"])
             if "landmark_visible" in truth.columns:
                 s["visibility"] = _visibility(ok, truth["landmark_visible"])
     for c in names:

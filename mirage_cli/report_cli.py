@@ -7,20 +7,26 @@ import numpy as np
 import yaml
 
 from . import ui
-from .cli_options import FILE, file_option, output_option
+from .cli_options import FILE, file_option, output_option, shown
+from .errors import InputError
 from .fileio import atomic_write, check_writable, refuse_overwrite
 from .path import load_path
 from .plotting import REPORT_DPI, report_figure, save_png
 from .report import Report, make_report
-from .trajectory import guess_format, match_times, read_pose_csv, read_trajectory
+from .trajectory import read_pose_csv
+from .truth import BodyToCamera, TruthSettings, load_truth
+from .validate import FiniteFloat
 
 _UNITS = {"_m": "m", "_deg": "deg"}
 
 
 def write_report(rep: Report, output, summary_path=None, plot_path=None, path=None) -> None:
     """Write report.csv (+ summary YAML, + plot), each atomically."""
+    table = rep.table.copy()
+    t = table["time_s"].to_numpy(float)  # epoch stamps (bags) need their microseconds
+    table["time_s"] = np.where(np.isfinite(t), np.char.mod("%.6f", np.nan_to_num(t)), "")
     with atomic_write(output, newline="") as f:
-        rep.table.to_csv(f, index=False, float_format="%.8g", lineterminator="\n")
+        table.to_csv(f, index=False, float_format="%.8g", lineterminator="\n")
     if summary_path:
         with atomic_write(summary_path) as f:
             yaml.safe_dump(rep.summary, f, sort_keys=False)
@@ -37,6 +43,12 @@ def summary_lines(s: dict) -> list[str]:
         f"longest lost stretch {ll['frames']} frames{sec}",
         f"  {'error':<20}{'mean':>10}{'RMS':>10}{'p95 |e|':>10}{'max |e|':>10}",
     ]
+    if s.get("frames_without_truth"):
+        lines.insert(
+            1,
+            f"  {s['frames_without_truth']} frame(s) without truth (none within the time "
+            "tolerance, or no row): left out of the truth errors",
+        )
     vis = s.get("visibility")
     if vis and vis["tracked_in_view_pct"] is not None:
         lines.insert(
@@ -62,21 +74,53 @@ def summary_lines(s: dict) -> list[str]:
     required=True,
     help="Desired path: YAML (type: circle | polyline) or waypoint CSV x_m,y_m,z_m[,time_s].",
 )
-@file_option(
+@click.option(
     "--truth",
-    help="Ground truth: pose CSV (joined by frame) or TUM file (nearest time within 10 ms); "
-    "adds position and rotation error.",
+    type=click.Path(),
+    help="Ground truth: pose CSV (joined by frame), TUM file or ROS bag pose topic (nearest "
+    "time within --t-max-diff); adds position and rotation error.",
+)
+@click.option(
+    "--truth-topic",
+    metavar="NAME",
+    help="Bag truth: the pose topic (PoseStamped, PoseWithCovarianceStamped, Odometry, "
+    "TransformStamped) [default: the bag's only pose topic].",
+)
+@click.option(
+    "--truth-transform",
+    metavar="'X Y Z QW QX QY QZ'|FILE",
+    help="T_body_camera: the camera's pose in the tracked body's frame (centre in metres, "
+    "quaternion of R_body_camera, camera frame x right, y down, z forward), so that "
+    "T_W_camera = T_W_body * T_body_camera; or a file holding that line [default: identity, "
+    "the truth is the camera].",
+)
+@shown(
+    "--t-offset",
+    type=FiniteFloat(),
+    default=TruthSettings.t_offset_s,
+    help="Seconds added to the truth stamps before matching them to the frames (TUM, bag).",
+)
+@shown(
+    "--t-max-diff",
+    type=FiniteFloat(min=0, min_open=True),
+    default=TruthSettings.t_max_diff_s,
+    help="Largest time difference (s) between a frame and its truth; frames beyond it get no "
+    "truth error.",
 )
 @output_option("report.csv", "Per-frame error CSV to write.")
 @file_option("--summary", help="Also write the summary YAML.")
 @file_option("--plot", help="Also write a PNG plot.")
-def report_cmd(poses, path, truth, output, summary, plot):
+def report_cmd(
+    poses, path, truth, truth_topic, truth_transform, t_offset, t_max_diff, output, summary, plot
+):
     """Path-following errors of a pose CSV against the desired path (and the truth).
 
     \b
     Example:
       mirage report poses.csv --path desired_path.yaml --truth truth.csv \\
           -o report.csv --summary summary.yaml --plot report.png
+      mirage report poses.csv --path desired_path.yaml --truth flight.bag \\
+          --truth-topic /mocap/pose --truth-transform "0.05 0 -0.03 0.5 -0.5 0.5 -0.5"
     """
     refuse_overwrite(
         {"-o": output, "--summary": summary, "--plot": plot},
@@ -87,12 +131,10 @@ def report_cmd(poses, path, truth, output, summary, plot):
             check_writable(out)
     desired = load_path(path)
     table = read_pose_csv(poses)
-    truth_df = None
-    if truth:
-        fmt = guess_format(truth)
-        truth_df = read_trajectory(truth, fmt)
-        if fmt != "csv":  # no frame ids: the pose frames nearest in time
-            truth_df = match_times(truth_df, table)
+    settings = TruthSettings(truth_topic, BodyToCamera.parse(truth_transform), t_offset, t_max_diff)
+    if not truth and (truth_topic or truth_transform or t_offset):
+        raise InputError("--truth-topic, --truth-transform and --t-offset need --truth FILE")
+    truth_df = load_truth(truth, table, settings) if truth else None
     publish_report(make_report(table, desired, truth_df), desired, output, summary, plot)
 
 

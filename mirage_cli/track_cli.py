@@ -12,7 +12,14 @@ import numpy as np
 
 from . import refine, signals, track, ui
 from .camera import Camera
-from .cli_options import camera_option, file_option, inputs_argument, output_option, shown
+from .cli_options import (
+    camera_option,
+    file_option,
+    inputs_argument,
+    output_option,
+    shown,
+    topic_option,
+)
 from .errors import InputError, OutputError
 from .fileio import (
     atomic_path,
@@ -21,7 +28,7 @@ from .fileio import (
     require_file,
     video_frames_written,
 )
-from .frames import FrameSource, matching_camera
+from .frames import FrameSource, matching_camera, with_topic
 from .model import LandmarkModel
 from .plotting import draw_overlay
 from .solver import METHODS, warm_up
@@ -45,7 +52,10 @@ def also_write_options(f):
 @click.command("track")
 @inputs_argument("video", metavar="VIDEO")
 @file_option("--model", "model_path", required=True, help="Landmark model from build-model.")
-@camera_option("Camera YAML (default: the camera stored in the model).")
+@camera_option(
+    "Camera YAML (default: a ROS bag's camera_info, else the camera stored in the model)."
+)
+@topic_option()
 @output_option("poses.csv", "Pose CSV to write.")
 @shown("--method", type=click.Choice(METHODS), default=TrackSettings.method)
 @click.option(
@@ -88,6 +98,7 @@ def track_cmd(
     video,
     model_path,
     camera_path,
+    topic,
     output,
     method,
     start,
@@ -123,7 +134,14 @@ def track_cmd(
                 f"model {model_path} was built with another camera than "
                 f"{camera_path}; rebuild the model or pass the model's camera"
             )
-    src = FrameSource(list(video), fps=fps)
+    src = FrameSource(with_topic(video, topic), fps=fps)
+    if not camera_path and (info := src.camera()) is not None:
+        if not info.same_as(model.camera, tol_px=1.0):
+            raise InputError(
+                f"model {model_path} was built with another camera than the camera_info of "
+                f"{src.bag.topic} in {src.video}; rebuild the model or pass --camera"
+            )
+        camera = info
     first, last = frame_range(start, end, src.fps)  # an empty range fails before any output
     if src.count == 0 and src.is_video:
         ui.log.warning(f"{src.video}: frame count unknown; reading until the end")

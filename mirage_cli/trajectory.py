@@ -262,10 +262,13 @@ def guess_format(path) -> str:
     return "csv"
 
 
-def match_times(truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01) -> pd.DataFrame:
+def match_times(
+    truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01, offset_s: float = 0.0
+) -> pd.DataFrame:
     """Truth rows renamed to the pose frames nearest in time (within `max_dt` s, one truth
-    row per frame), for truth that has times but not the poses' frame ids (TUM)."""
-    t = truth["time_s"].to_numpy(float)
+    row per frame), for truth that has times but not the poses' frame ids (TUM, a bag);
+    `offset_s` is added to the truth times first (their time_s is returned shifted)."""
+    t = truth["time_s"].to_numpy(float) + offset_s
     pt = poses["time_s"].to_numpy(float)
     if not (np.isfinite(t).all() and np.isfinite(pt).any()):
         raise InputError("matching truth by time needs times in both files (time_s column)")
@@ -281,6 +284,7 @@ def match_times(truth: pd.DataFrame, poses: pd.DataFrame, max_dt: float = 0.01) 
             f"{max_dt * 1000:g} ms; is it the truth of this video?"
         )
     rows = truth.iloc[order[near[hit]]].copy()
+    rows["time_s"] = t[near[hit]]
     rows["frame"] = poses["frame"].to_numpy()[hit]
     return rows.reset_index(drop=True)
 
@@ -395,7 +399,7 @@ def _numbers(path, what: str, width: int) -> np.ndarray:
     return a
 
 
-def _pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.DataFrame:
+def pose_table(frames, times, centers: np.ndarray, quats: np.ndarray) -> pd.DataFrame:
     """A pose-CSV table of ok rows (quaternions normalised, angles derived)."""
     import pandas as pd
 
@@ -413,7 +417,7 @@ def read_tum(path) -> pd.DataFrame:
     a = _numbers(path, "TUM", 8)
     validate.unique_times(a[:, 0], path, "TUM")
     q = validate.unit_quaternion_rows(a[:, [7, 4, 5, 6]], path, "TUM")
-    return _pose_table(range(len(a)), a[:, 0], a[:, 1:4], q)
+    return pose_table(range(len(a)), a[:, 0], a[:, 1:4], q)
 
 
 def read_kitti(path) -> pd.DataFrame:
@@ -423,7 +427,7 @@ def read_kitti(path) -> pd.DataFrame:
     T = _numbers(path, "KITTI", 12).reshape(-1, 3, 4)
     validate.rotation_rows(T[:, :, :3], path, "KITTI")
     q = Rotation.from_matrix(T[:, :, :3]).as_quat()[:, [3, 0, 1, 2]]
-    return _pose_table(range(len(T)), np.nan, T[:, :, 3], q)
+    return pose_table(range(len(T)), np.nan, T[:, :, 3], q)
 
 
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw (mirage track, camera-to-world)\n"
