@@ -208,14 +208,15 @@ def test_corrupt_frames_are_reported_and_rest_tracked(sample_model, tmp_path, mi
 def test_corrupt_video_stretch_keeps_going(sample_model, tmp_path, mirage):
     """Damaged bytes mid-video: those frames are decode_error, decoding resumes after them."""
     data = bytearray((SAMPLE / "orbit.mp4").read_bytes())
-    a = len(data) // 3
-    data[a : a + 150_000] = np.random.default_rng(0).integers(0, 256, 150_000, np.uint8).tobytes()
+    a = len(data) // 6  # frames ~90-110 (of 540)
+    data[a : a + 100_000] = np.random.default_rng(0).integers(0, 256, 100_000, np.uint8).tobytes()
     bad = tmp_path / "damaged.mp4"
     bad.write_bytes(bytes(data))
-    p = mirage("track", bad, "--model", sample_model, "-o", tmp_path / "o.csv")
+    p = mirage("track", bad, "--model", sample_model, "--end", "200", "-o", tmp_path / "o.csv")
     assert p.returncode == 0, p.stderr
     est, truth = read_pose_csv(tmp_path / "o.csv"), read_pose_csv(SAMPLE / "orbit_truth.csv")
-    assert len(est) == len(truth)
+    assert len(est) == 200
+    truth = truth.iloc[:200]
     dec = np.flatnonzero(est["status"] == "decode_error")
     assert 0 < len(dec) < len(est) // 4
     assert (est["status"].iloc[dec[-1] + 1 :] == "ok").mean() > 0.7  # tracked after it
