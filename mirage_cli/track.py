@@ -464,12 +464,13 @@ class Tracker:
             return res
         if est.pose.transform(np.zeros((1, 3)))[0, 2] <= 0:
             return res  # the landmark behind the camera
+        frames = 1 + self.lost_run  # since the previous ok pose: the limits are per frame
         if (
             check_jump
             and self.prev_pose is not None
             and (
-                est.pose.distance_to(self.prev_pose) > self.s.max_jump_m
-                or est.pose.angle_to(self.prev_pose) > self.s.max_jump_deg
+                est.pose.distance_to(self.prev_pose) > self.s.max_jump_m * frames
+                or est.pose.angle_to(self.prev_pose) > self.s.max_jump_deg * frames
             )
         ):
             return res

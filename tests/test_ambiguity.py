@@ -169,3 +169,16 @@ def test_few_good_points_keep_a_tracked_pose_many_clustered_ones_do_not(model):
     uv = tr.camera.project(X, truth) + rng.normal(0, 0.3, (40, 2))
     res = _track_gate(tr, X, uv, "detect", off)
     assert res.status == "uncertain" and res.sigma_pos_m > 0.015, res.sigma_pos_m
+
+
+def test_the_jump_limit_is_per_frame_since_the_last_ok_pose(model):
+    """A camera 0.8 m from the last ok pose is a jump one frame later, not three frames
+    later (two frames `uncertain` between: a fast, far camera moves that much)."""
+    tr = Tracker(model, model.camera, TrackSettings())
+    tr.prev_pose = look_at([1.5, 0.0, 0.6], [0, 0, 0.3])
+    moved = look_at([1.4, 0.8, 0.6], [0, 0, 0.3])
+    assert 0.5 < moved.distance_to(tr.prev_pose) < 1.0
+    est = PoseEstimate(moved, True, "", 5, 0.5, np.ones(40, bool), np.eye(6) * 1e-8, sigma_px=0.5)
+    assert tr._gate(est, 40, "detect", check_jump=True).status == "lost"
+    tr.lost_run = 2
+    assert tr._gate(est, 40, "detect", check_jump=True).status == "ok"
