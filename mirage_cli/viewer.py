@@ -132,10 +132,14 @@ class _Recording:
         self._path = atomic_path(path, verify=_reads_back)
         self.rr = rerun_module()
 
+    def blueprint(self):
+        """The viewer's default layout (None: Rerun's automatic one)."""
+        return None
+
     def __enter__(self):
         self.tmp = self._path.__enter__()
         self.rec = self.rr.RecordingStream(APP_ID)
-        self.rec.save(str(self.tmp))
+        self.rec.save(str(self.tmp), default_blueprint=self.blueprint())
         return self
 
     def __exit__(self, *exc):
@@ -167,6 +171,27 @@ class TrackRecording(_Recording):
         self._in_block = 0
         self._run_open = False
         self._status = None
+
+    def blueprint(self):
+        """3D scene | the frame with its inliers over the time series, one plot each (their
+        scales differ by five orders of magnitude)."""
+        import rerun.blueprint as rrb
+
+        plots = [
+            rrb.TimeSeriesView(origin=f"track/{name}", name=name)
+            for name in ("inliers", "sigma_pos_m", "sigma_rot_deg", "ok")
+        ]
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial3DView(origin="world", name="landmark and camera"),
+                rrb.Vertical(
+                    rrb.Spatial2DView(origin=IMAGE, name="frame and inliers"),
+                    rrb.Tabs(*plots, rrb.TextLogView(origin="track/status", name="status")),
+                    row_shares=[3, 2],
+                ),
+                column_shares=[3, 2],
+            )
+        )
 
     def __enter__(self):
         super().__enter__()

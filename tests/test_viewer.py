@@ -70,6 +70,7 @@ def tracked(sample_model, tmp_path_factory):
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
     assert "rerun " in p.stdout  # the summary says how to view it
+    assert rr.chunk.RrdReader(d / "out.rrd").blueprints()  # the layout comes along
     return pd.read_csv(d / "poses.csv"), read_rrd(d / "out.rrd"), d
 
 
