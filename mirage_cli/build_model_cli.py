@@ -24,7 +24,7 @@ from .fileio import check_writable, refuse_overwrite
 from .model import LandmarkModel
 from .plotting import TOP_VIEW_DPI, save_png, top_view_figure
 from .validate import BoundedInt, FiniteFloat
-from .viewer import record_model, rerun_module
+from .viewer import check_room, record_model, rerun_module
 
 
 def summary_lines(model: LandmarkModel) -> list[str]:
@@ -200,6 +200,7 @@ def inspect_cmd(model_path, plot, rerun_path):
     if rerun_path:
         check_writable(rerun_path)
         rerun_module()  # without the [viz] extra: one line before any work
+        check_room(rerun_path)
     t0 = time.perf_counter()
     model = LandmarkModel.load(model_path)
     dt = time.perf_counter() - t0

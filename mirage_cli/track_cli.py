@@ -28,7 +28,7 @@ from .solver import METHODS, warm_up
 from .track import Tracker, TrackSettings
 from .trajectory import FORMATS, TRACK_COLUMNS, Status, TrajectoryWriter
 from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
-from .viewer import TrackRecording, rerun_module
+from .viewer import TrackRecording, check_room, rerun_module
 
 
 def also_write_options(f):
@@ -118,6 +118,7 @@ def track_cmd(
             check_writable(extra)
     if rerun_path:
         rerun_module()  # without the [viz] extra: one line now, not after the tracking
+        check_room(rerun_path)
     model = LandmarkModel.load(require_file(model_path, "model file"))
     camera = model.camera
     if camera_path:

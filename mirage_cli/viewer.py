@@ -22,12 +22,15 @@ Timelines: `frame` (the video frame number, or the running index for image sets)
 from __future__ import annotations
 
 import math
+import os
+import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .errors import InputError, OutputError
-from .fileio import atomic_path
+from .errors import EnvironmentFailure, InputError, OutputError, cv_message
+from .fileio import atomic_path, write_failure
 from .model import LandmarkModel
 from .trajectory import FrameRecord
 
@@ -35,6 +38,11 @@ RERUN_MISSING = "--rerun needs rerun-sdk: pip install 'mirage-cli[viz]'"
 APP_ID = "mirage"
 JPEG_QUALITY = 80  # 640x480 frames: ~40 kB instead of 900 kB raw
 TRAJECTORY_BLOCK = 100  # poses per trajectory entity
+FLUSH_TIMEOUT_S = 120.0  # rerun's flush waits forever when its file writer died (full disk)
+# rerun 0.41's file writer does not survive a full disk: its thread dies and closing the
+# recording can then block for ever. So we stop, with one clear line, while this much room
+# is left (more than rerun buffers before it writes)
+MIN_FREE_BYTES = 16 * 1024 * 1024
 POINTS = "world/model/points"
 KEYFRAMES = "world/model/keyframes"
 CAMERA = "world/camera"
@@ -45,6 +53,9 @@ TRAJECTORY = "world/trajectory"
 
 def rerun_module():
     """`import rerun`, or the one-line error that says how to get it."""
+    # rerun's Rust logger prints its own lines on stderr (four for a full disk) while the
+    # failure also comes back as an exception, which is our one line; a user's RUST_LOG wins
+    os.environ.setdefault("RUST_LOG", "off")
     try:
         import rerun
     except ImportError:
@@ -52,10 +63,23 @@ def rerun_module():
     return rerun
 
 
+def check_room(path) -> None:
+    """Fail, while a recording can still be closed, before its disk is full (see
+    MIN_FREE_BYTES); the CLI calls it before any work too."""
+    st = os.statvfs(Path(path).parent)
+    if st.f_bavail * st.f_frsize < MIN_FREE_BYTES:
+        raise EnvironmentFailure(
+            f"cannot write {path}: less than {MIN_FREE_BYTES >> 20} MB left on its disk "
+            "(disk full?)"
+        )
+
+
 def _reads_back(path) -> bool:
     """A finished recording has its footer (manifest); a truncated one does not."""
     rr = rerun_module()
-    rr.chunk.RrdReader(path).store()
+    with warnings.catch_warnings():  # "no footer: legacy format": it is a failed write
+        warnings.simplefilter("ignore")
+        rr.chunk.RrdReader(path).store()
     return True
 
 
@@ -125,10 +149,14 @@ def _log_model(rr, rec, model: LandmarkModel) -> None:
             )
 
 
+_ABANDONED: list = []  # recordings whose file writer failed (see _Recording.__exit__)
+
+
 class _Recording:
     """A recording written to a temporary file and renamed into place on success."""
 
     def __init__(self, path):
+        self._target = path
         self._path = atomic_path(path, verify=_reads_back)
         self.rr = rerun_module()
 
@@ -136,20 +164,38 @@ class _Recording:
         """The viewer's default layout (None: Rerun's automatic one)."""
         return None
 
+    def check_space(self) -> None:
+        check_room(self._target)
+
     def __enter__(self):
         self.tmp = self._path.__enter__()
+        try:
+            self.check_space()
+        except EnvironmentFailure as err:
+            self._path.__exit__(type(err), err, None)  # drops the temp file
+            raise
         self.rec = self.rr.RecordingStream(APP_ID)
-        self.rec.save(str(self.tmp), default_blueprint=self.blueprint())
+        try:
+            self.rec.save(str(self.tmp), default_blueprint=self.blueprint())
+        except RuntimeError as e:  # rerun's OS errors (a full disk) come as RuntimeError
+            self.rec.disconnect()  # else it warns about the data it drops
+            err = write_failure(self._target, OSError(cv_message(e)))
+            self._path.__exit__(type(err), err, None)
+            raise err from None
         return self
 
     def __exit__(self, *exc):
         try:
-            self.rec.flush()
+            self.rec.flush(timeout_sec=FLUSH_TIMEOUT_S)
             self.rec.disconnect()  # closes the file, writing its footer
-        except BaseException as e:
-            if exc[0] is not None:
-                raise
-            return self._path.__exit__(type(e), e, e.__traceback__)  # drops the temp file
+        except RuntimeError as e:  # rerun's write errors, or a flush that does not end
+            # rerun 0.41 blocks for ever disconnecting, or garbage-collecting, a recording
+            # whose file writer died (a full disk): keep it referenced, never disconnected
+            _ABANDONED.append(self.rec)
+            if exc[0] is None:
+                err = write_failure(self._target, OSError(f"{cv_message(e)} (disk full?)"))
+                self._path.__exit__(type(err), err, None)  # drops the temp file
+                raise err from None
         return self._path.__exit__(*exc)
 
 
@@ -157,6 +203,7 @@ def record_model(path, model: LandmarkModel) -> None:
     """`mirage inspect --rerun`: the model's points and keyframe cameras, all static."""
     with _Recording(path) as r:
         _log_model(r.rr, r.rec, model)
+        r.check_space()
 
 
 class TrackRecording(_Recording):
@@ -211,6 +258,7 @@ class TrackRecording(_Recording):
         return self
 
     def write(self, fr: FrameRecord) -> None:
+        self.check_space()
         rr, rec = self.rr, self.rec
         rec.set_time("frame", sequence=fr.frame if isinstance(fr.frame, int) else self.n)
         if math.isfinite(fr.time_s):

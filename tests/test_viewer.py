@@ -1,6 +1,8 @@
 """`--rerun`: Rerun recordings of `track` and `inspect`, read back and checked against the
 pose CSV and the model (mirage_cli/viewer.py)."""
 
+import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -14,11 +16,15 @@ import pytest
 from conftest import SAMPLE, assert_one_line_error
 
 from mirage_cli import cli, track, track_cli, viewer
+from mirage_cli.errors import EnvironmentFailure, InputError
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pose import matrix_from_quat
 from mirage_cli.trajectory import FrameRecord, Status
 
-rr = pytest.importorskip("rerun", reason="the [viz] extra (rerun-sdk) is not installed")
+try:  # through mirage, so that rerun starts as it does in the CLI (its Rust log quiet)
+    rr = viewer.rerun_module()
+except InputError:
+    pytest.skip("the [viz] extra (rerun-sdk) is not installed", allow_module_level=True)
 
 VIDEO = SAMPLE / "orbit.mp4"
 N_FRAMES = 15
@@ -175,6 +181,25 @@ def test_mirage_imports_rerun_only_for_a_recording():
     assert p.stdout.strip() == "False", p.stderr
 
 
+def fake_track(monkeypatch, recs, stop=KeyboardInterrupt):
+    """track's output loop fed `recs` instead of a real tracker, then `stop` raised."""
+
+    def run(frames, tracker, keep_images):
+        assert keep_images  # the recording needs the frames
+        yield from recs
+        if stop is not None:
+            raise stop
+
+    monkeypatch.setattr(track, "run", run)
+    monkeypatch.setattr(track_cli, "warm_up", lambda: None)
+
+
+def track_to(model, csv, rrd):
+    src = SimpleNamespace(count=10, fps=10.0, frames=lambda first, last, every: iter(()))
+    tracker = SimpleNamespace(model=model, camera=model.camera)
+    track_cli.track_to_files(src, tracker, csv, rerun=rrd)
+
+
 def test_interrupt_keeps_the_recording_of_finished_frames(sample_model, tmp_path, monkeypatch):
     """track's output loop fed five records (one lost) and then Ctrl-C: the recording is
     in place with exactly those frames; the path breaks at the lost frame and its blocks
@@ -192,19 +217,11 @@ def test_interrupt_keeps_the_recording_of_finished_frames(sample_model, tmp_path
         FrameRecord(Status.OK, poses[3], 4, 0.4, inliers=3, inlier_px=px, image=img),
     ]
 
-    def run(frames, tracker, keep_images):
-        assert keep_images  # the recording needs the frames
-        yield from recs
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(track, "run", run)
-    monkeypatch.setattr(track_cli, "warm_up", lambda: None)
+    fake_track(monkeypatch, recs)
     monkeypatch.setattr(viewer, "TRAJECTORY_BLOCK", 2)
-    src = SimpleNamespace(count=10, fps=10.0, frames=lambda first, last, every: iter(()))
-    tracker = SimpleNamespace(model=model, camera=cam)
     out = tmp_path / "out.rrd"
     with pytest.raises(KeyboardInterrupt):
-        track_cli.track_to_files(src, tracker, tmp_path / "p.csv", rerun=out)
+        track_to(model, tmp_path / "p.csv", out)
     ent = read_rrd(out)
     frames, _ = column(ent["/world/camera/image"], "EncodedImage:blob")
     assert frames == [0, 1, 2, 3, 4]
@@ -223,3 +240,57 @@ def test_interrupt_keeps_the_recording_of_finished_frames(sample_model, tmp_path
     assert len(b0) == 2 and len(b1) == 2  # each frame logs its block only
     assert len(pd.read_csv(tmp_path / "p.csv")) == 5
     assert not list(tmp_path.glob(".*"))  # no temporary file left
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 256 KiB tmpfs: a recording fills it within a few frames."""
+    mnt = tmp_path / "small"
+    mnt.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("a full disk needs root to mount a small tmpfs")
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", mnt], capture_output=True
+    )
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+def test_full_disk_is_one_line_and_leaves_nothing(sample_model, small_disk, capsys):
+    """rerun's file writer does not survive a full disk (closing the recording can hang):
+    mirage stops first, with one line naming the file, exit 1 and no temporary file."""
+    out = small_disk / "out.rrd"
+    for args in (["inspect", sample_model], ["track", VIDEO, "--model", sample_model]):
+        p = mirage_here("-q", *args, "-o" if args[0] == "track" else "--plot",
+                        small_disk.parent / "x.out", "--rerun", out, capsys=capsys)  # fmt: skip
+        assert_one_line_error(p, 1, f"cannot write {out}: less than 16 MB left")
+        assert not list(small_disk.iterdir())
+
+
+def test_disk_filling_up_stops_the_recording_cleanly(sample_model, tmp_path, monkeypatch):
+    """Room runs out after two frames: the run stops there with one line, the recording
+    is closed (no hang) and removed, like the pose CSV on any error."""
+    model = LandmarkModel.load(sample_model)
+    img = np.zeros((480, 640, 3), np.uint8)
+    recs = [FrameRecord(Status.LOST, None, i, i / 10, image=img) for i in range(5)]
+    fake_track(monkeypatch, recs, stop=None)
+    calls = {"n": 0}
+    real = os.statvfs
+
+    def statvfs(path):  # plenty of room for the header and two frames, then none
+        calls["n"] += 1
+        st = real(path)
+        free = 1 << 30 if calls["n"] <= 3 else 0
+        return SimpleNamespace(f_bavail=free // st.f_frsize, f_frsize=st.f_frsize)
+
+    monkeypatch.setattr(viewer.os, "statvfs", statvfs)
+    out = tmp_path / "out.rrd"
+    with pytest.raises(EnvironmentFailure, match=f"cannot write {out}: less than 16 MB"):
+        track_to(model, tmp_path / "p.csv", out)
+    assert calls["n"] == 4  # the header, frames 0 and 1, then frame 2 found no room
+    assert not out.exists() and not (tmp_path / "p.csv").exists()
+    assert not list(tmp_path.glob(".*"))
