@@ -164,13 +164,10 @@ class _Recording:
         """The viewer's default layout (None: Rerun's automatic one)."""
         return None
 
-    def check_space(self) -> None:
-        check_room(self._target)
-
     def __enter__(self):
         self.tmp = self._path.__enter__()
         try:
-            self.check_space()
+            check_room(self._target)
         except EnvironmentFailure as err:
             self._path.__exit__(type(err), err, None)  # drops the temp file
             raise
@@ -203,7 +200,7 @@ def record_model(path, model: LandmarkModel) -> None:
     """`mirage inspect --rerun`: the model's points and keyframe cameras, all static."""
     with _Recording(path) as r:
         _log_model(r.rr, r.rec, model)
-        r.check_space()
+        check_room(r._target)
 
 
 class TrackRecording(_Recording):
@@ -258,7 +255,7 @@ class TrackRecording(_Recording):
         return self
 
     def write(self, fr: FrameRecord) -> None:
-        self.check_space()
+        check_room(self._target)
         rr, rec = self.rr, self.rec
         rec.set_time("frame", sequence=fr.frame if isinstance(fr.frame, int) else self.n)
         if math.isfinite(fr.time_s):
