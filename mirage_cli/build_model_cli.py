@@ -33,6 +33,7 @@ from .frames import FrameSource, resolve_inputs, with_topic
 from .model import LandmarkModel
 from .plotting import TOP_VIEW_DPI, save_png, top_view_figure
 from .validate import BoundedInt, FiniteFloat
+from .viewer import check_room, record_model, rerun_module
 
 
 def summary_lines(model: LandmarkModel) -> list[str]:
@@ -215,9 +216,18 @@ def save_model(res, output, source: dict, t0: float) -> None:
 @click.command("inspect")
 @click.argument("model_path", metavar="MODEL", type=FILE)
 @file_option("--plot", help="Write a top view (PNG) of the keyframes and 3D points.")
-def inspect_cmd(model_path, plot):
+@file_option(
+    "--rerun",
+    "rerun_path",
+    help="Write a Rerun recording (.rrd) of the 3D points and keyframe cameras.",
+)
+def inspect_cmd(model_path, plot, rerun_path):
     """Print a landmark model's summary; optionally plot it from above."""
-    refuse_overwrite({"--plot": plot}, {"MODEL": model_path})
+    refuse_overwrite({"--plot": plot, "--rerun": rerun_path}, {"MODEL": model_path})
+    if rerun_path:
+        check_writable(rerun_path)
+        rerun_module()  # without the [viz] extra: one line before any work
+        check_room(rerun_path)
     t0 = time.perf_counter()
     model = LandmarkModel.load(model_path)
     dt = time.perf_counter() - t0
@@ -238,3 +248,6 @@ def inspect_cmd(model_path, plot):
     if plot:
         save_png(top_view_figure(model), plot, TOP_VIEW_DPI, bbox_inches="tight")
         ui.echo(f"  plot               {plot}")
+    if rerun_path:
+        record_model(rerun_path, model)
+        ui.echo(f"  Rerun recording    {rerun_path} (view it with: rerun {rerun_path})")

@@ -35,6 +35,7 @@ from .solver import METHODS, warm_up
 from .track import Tracker, TrackSettings
 from .trajectory import FORMATS, TRACK_COLUMNS, Status, TrajectoryWriter
 from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
+from .viewer import TrackRecording, check_room, rerun_module
 
 
 def also_write_options(f):
@@ -93,6 +94,11 @@ def also_write_options(f):
     help="Largest reprojection RMS (px) of an ok frame.",
 )
 @file_option("--overlay", help="Write a video with the landmark axes, inliers and status drawn.")
+@file_option(
+    "--rerun",
+    "rerun_path",
+    help="Write a Rerun recording (.rrd): frames, inliers, camera path, model; `rerun FILE`.",
+)
 @also_write_options
 def track_cmd(
     video,
@@ -110,6 +116,7 @@ def track_cmd(
     min_inliers,
     max_rmse,
     overlay,
+    rerun_path,
     **also,
 ):
     """Estimate the camera pose in every frame of VIDEO (a video file, or images).
@@ -118,13 +125,17 @@ def track_cmd(
     """
     also = {name: path for name, path in also.items() if path}  # format -> file
     refuse_overwrite(
-        {"-o": output, "--overlay": overlay} | {FORMATS[n].flag: p for n, p in also.items()},
+        {"-o": output, "--overlay": overlay, "--rerun": rerun_path}
+        | {FORMATS[n].flag: p for n, p in also.items()},
         {"VIDEO": video, "--model": model_path, "--camera": camera_path},
     )
     out = check_writable(output)
-    for extra in (overlay, *also.values()):
+    for extra in (overlay, rerun_path, *also.values()):
         if extra:
             check_writable(extra)
+    if rerun_path:
+        rerun_module()  # without the [viz] extra: one line now, not after the tracking
+        check_room(rerun_path)
     model = LandmarkModel.load(require_file(model_path, "model file"))
     camera = model.camera
     if camera_path:
@@ -156,14 +167,15 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
-    track_to_files(src, tracker, out, first or 0, last, every, overlay, also)
+    track_to_files(src, tracker, out, first or 0, last, every, overlay, also, rerun_path)
 
 
 def track_to_files(
-    src, tracker, output, first=0, last=None, every=1, overlay=None, also=None
+    src, tracker, output, first=0, last=None, every=1, overlay=None, also=None, rerun=None
 ) -> None:
     """Track the frames, writing each record to the pose CSV (and to `also`, format name ->
-    file, e.g. {"tum": "poses.tum"}, and the overlay) as it comes; print the summary.
+    file, e.g. {"tum": "poses.tum"}, the overlay and the Rerun recording) as it comes;
+    print the summary.
     Ctrl-C or SIGTERM keeps the finished frames in every output, then the interrupt goes
     on (exit 130 / 143)."""
     if not refine.cached_on_disk():
@@ -172,13 +184,17 @@ def track_to_files(
     points = tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
     outputs = [(output, "csv")] + [(path, fmt) for fmt, path in (also or {}).items() if path]
-    stats = _track(src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m)
+    stats = _track(
+        src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m, rerun
+    )
     _summary(stats, output)
+    if rerun:
+        ui.echo(f"       Rerun recording {rerun} (view it with: rerun {rerun})")
     if stats["interrupted"] is not None:
         raise stats["interrupted"]  # after the outputs are in place
 
 
-def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -> dict:
+def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m, rerun=None) -> dict:
     """Run the tracker over the frames and write every record to every output as it comes.
     An interrupt keeps the finished frames (outputs renamed into place with further signals
     held) and is returned, to be raised once the summary is out."""
@@ -195,12 +211,18 @@ def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m) -
         ]
         fps = src.fps / every if src.fps else 10.0
         ov = stack.enter_context(_Overlay(overlay, fps, camera, axis_m)) if overlay else None
+        rrd = None
+        if rerun:
+            rrd = stack.enter_context(TrackRecording(rerun, tracker.model, camera))
         bar = stack.enter_context(ui.progress(total, "tracking"))
         frames = src.frames(first, last, every)
         try:
-            for rec in track.run(frames, tracker, keep_images=ov is not None):
+            keep = ov is not None or rrd is not None
+            for rec in track.run(frames, tracker, keep_images=keep):
                 for w in writers:
                     w.write(rec)
+                if rrd is not None:  # before the overlay, which takes the image
+                    rrd.write(rec)
                 if ov is not None:
                     ov.write(rec)
                 done.append((rec.status, rec.inliers))
