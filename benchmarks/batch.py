@@ -14,6 +14,7 @@ serial run's (byte for byte, apart from the `ms` column).
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -79,6 +80,7 @@ def main() -> None:
     args = ap.parse_args()
     from distributed import LocalCluster
 
+    load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         model = args.model
@@ -113,6 +115,10 @@ def main() -> None:
         base = rows[i - 1][2] if w == 2 else wall
         print(f"| {name} | {w} | {wall:.1f} | {frames / wall:.1f} | {base / wall:.2f} |")
     print(f"\noutputs identical to the serial run (except `ms`): {same}")
+    print(
+        f"load average (1 min) {load0:.1f} before, {os.getloadavg()[0]:.1f} after, on "
+        f"{os.cpu_count()} CPUs: other processes' load leaves less for the workers"
+    )
 
 
 if __name__ == "__main__":

@@ -220,7 +220,9 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
 
 
 def _default_name(video: Path) -> str:
-    """The file name without its extension (a folder's own name)."""
+    """The file name without its extension (a folder's own name; a glob's folder)."""
+    if any(c in video.name for c in _GLOB_CHARS):
+        video = video.parent
     name = video.name if video.is_dir() else video.stem
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name).lstrip(".") or "flight"
 
@@ -299,8 +301,7 @@ def _track_and_report(flight: Flight, d: Path) -> FlightResult:
     src = FrameSource([flight.video])
     first, last = frame_range(flight.start, flight.end, src.fps)
     tracker = Tracker(model, matching_camera(camera, *src.size), TrackSettings())
-    with contextlib.redirect_stdout(io.StringIO()):  # the campaign prints one line a flight
-        track_to_files(src, tracker, d / "poses.csv", first, last)
+    track_to_files(src, tracker, d / "poses.csv", first, last)
     table = read_pose_csv(d / "poses.csv")
     truth = None
     if flight.truth:
@@ -488,7 +489,9 @@ def run_campaign(
             _run_dask(todo, out, client, got)
         elif (workers or os.cpu_count() or 1) == 1 or len(todo) <= 1:
             for f in todo:
-                got(run_flight(f, out))
+                with contextlib.redirect_stdout(io.StringIO()):  # one line a flight, not track's
+                    r = run_flight(f, out)
+                got(r)
         else:
             _run_pool(todo, out, min(workers or os.cpu_count() or 1, len(todo)), got)
     except KeyboardInterrupt as e:
