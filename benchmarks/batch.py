@@ -4,8 +4,10 @@ process pool and on a Dask LocalCluster, over flights cut from the sample orbit.
 Each run is the CLI end to end (a fresh output folder, so every flight is computed):
 process start, model loads, tracking, reports, campaign.csv and the plot. The Dask
 cluster is started before its runs (its start-up is printed, not counted), as a real
-cluster would be running already. Every run's pose and report CSVs are compared with the
-serial run's (byte for byte, apart from the `ms` column).
+cluster would be running already. CPU s is the CPU time of every process of the run (the
+Dask one includes its cluster's start-up); CPU / wall is how many cores the run kept busy,
+which says whether the machine had a second core to give. Every run's pose and report
+CSVs are compared with the serial run's (byte for byte, apart from the `ms` column).
 
     python benchmarks/batch.py                       # 4 flights of 135 frames
     python benchmarks/batch.py --flights 2 --frames 60
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -66,6 +69,12 @@ def same_outputs(a: Path, b: Path, names: list[str]) -> bool:
     )
 
 
+def child_cpu() -> float:
+    """CPU seconds of the finished child processes (the CLI, its pool, the Dask workers)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
 def timed(campaign: Path, out: Path, *extra) -> float:
     t0 = time.perf_counter()
     mirage("-q", "batch", campaign, "--out", out, *extra)
@@ -95,25 +104,34 @@ def main() -> None:
                "-o", d / "warm.csv")  # fmt: skip
         rows = []
         for w in (1, 2):
-            rows.append(("local pool", w, timed(campaign, d / f"pool{w}", "--workers", w)))
+            cpu = child_cpu()
+            wall = timed(campaign, d / f"pool{w}", "--workers", w)
+            rows.append((f"local, --workers {w}", w, wall, child_cpu() - cpu))
         for w in (1, 2):
-            t0 = time.perf_counter()
+            t0, cpu = time.perf_counter(), child_cpu()
             with LocalCluster(
                 n_workers=w, threads_per_worker=1, processes=True, dashboard_address=None
             ) as cluster:
                 up = time.perf_counter() - t0
                 wall = timed(campaign, d / f"dask{w}", "--scheduler", cluster.scheduler_address)
-            rows.append((f"Dask LocalCluster (start-up {up:.1f} s, not counted)", w, wall))
+            name = f"Dask LocalCluster, {w} worker(s) (start-up {up:.1f} s, not counted)"
+            rows.append((name, w, wall, child_cpu() - cpu))
         ref = d / "pool1"
         same = {r: same_outputs(ref, d / r, names) for r in ("pool2", "dask1", "dask2")}
 
     frames = args.flights * args.frames
     print(f"\n{args.flights} flights x {args.frames} frames of the sample orbit ({frames} frames)")
-    print("\n| executor | workers | wall s | frames/s | speed-up vs 1 worker |")
-    print("|---|---|---|---|---|")
-    for i, (name, w, wall) in enumerate(rows):
+    print(
+        "\n| executor | workers | wall s | frames/s | speed-up vs 1 worker | CPU s "
+        "| cores busy (CPU / wall) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for i, (name, w, wall, cpu) in enumerate(rows):
         base = rows[i - 1][2] if w == 2 else wall
-        print(f"| {name} | {w} | {wall:.1f} | {frames / wall:.1f} | {base / wall:.2f} |")
+        print(
+            f"| {name} | {w} | {wall:.1f} | {frames / wall:.1f} | {base / wall:.2f} "
+            f"| {cpu:.1f} | {cpu / wall:.2f} |"
+        )
     print(f"\noutputs identical to the serial run (except `ms`): {same}")
     print(
         f"load average (1 min) {load0:.1f} before, {os.getloadavg()[0]:.1f} after, on "

@@ -214,7 +214,7 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
     if s is not None and e is not None and s.seconds == e.seconds and e.value <= s.value:
         raise InputError(f"{where}: 'end' {e} must come after 'start' {s}")
     name = str(get("name", what="name") or _default_name(vpath))
-    if name in (".", "..") or "/" in name or "\\" in name or name.startswith("."):
+    if name.startswith(".") or "/" in name or "\\" in name or name in (CAMPAIGN_CSV, CAMPAIGN_PNG):
         raise InputError(f"{where}: name '{name}' must be a plain folder name")
     return Flight(name, str(vpath), path=files.pop("path"), **files, **when)
 
@@ -524,8 +524,9 @@ def _run_pool(todo: list[Flight], out: str, workers: int, got) -> None:
                 got(fut.result())
             except BrokenProcessPool:  # a worker died (a crash in native code)
                 got(FlightResult(futures[fut].name, "failed", reason="its worker process died"))
-    except KeyboardInterrupt:
-        # stop now: running flights keep their frames done, queued ones never start
+    except BaseException:
+        # Ctrl-C (or a failing output): stop now; running flights keep their frames done
+        # (SIGTERM ends them through track's interrupt path), queued ones never start
         procs = list((getattr(ex, "_processes", None) or {}).values())
         ex.shutdown(wait=False, cancel_futures=True)
         for p in procs:
@@ -585,40 +586,37 @@ def write_campaign_csv(results: list[FlightResult], path) -> None:
 
 
 def campaign_figure(results: list[FlightResult]):
-    """Tracked % per flight, and the path (and truth) errors' median and p95 per flight;
-    failed flights marked."""
+    """Per flight: tracked %, then the median and p95 of the path error and (with truth)
+    of the position and rotation errors, each on its own axis (they differ by orders of
+    magnitude); flights that did not finish are marked."""
     from matplotlib.figure import Figure
 
-    names = [r.flight for r in results]
+    panels = [("path error (m)", "path_error_median_m", "path_error_p95_m", 1.0)]
+    if any(r.position_error_median_m is not None for r in results):
+        panels += [
+            ("position error (cm)", "position_error_median_m", "position_error_p95_m", 100.0),
+            ("rotation error (deg)", "rotation_error_median_deg", "rotation_error_p95_deg", 1.0),
+        ]
     x = np.arange(len(results))
-    fig = Figure(figsize=(max(6.0, 0.6 * len(results) + 3), 7))
-    ax1, ax2 = fig.subplots(2, 1, sharex=True)
-    tracked = [r.tracked_pct if r.tracked_pct is not None else 0.0 for r in results]
-    colors = ["tab:blue" if r.ok else "tab:red" for r in results]
-    ax1.bar(x, tracked, color=colors)
+    fig = Figure(figsize=(max(6.0, 0.5 * len(results) + 3), 2.2 * (len(panels) + 1) + 0.8))
+    axes = fig.subplots(len(panels) + 1, 1, sharex=True)
+    tracked = [r.tracked_pct or 0.0 for r in results]
+    axes[0].bar(x, tracked, color=["tab:blue" if r.ok else "tab:red" for r in results])
     for i, r in enumerate(results):
         if not r.ok:
-            ax1.annotate(r.status, (i, 2), ha="center", rotation=90, color="tab:red", fontsize=8)
-    ax1.set(ylabel="tracked (%)", ylim=(0, 105), title=f"campaign: {len(results)} flights")
-    ax1.grid(alpha=0.3, axis="y")
-    series = [
-        ("path error", "path_error", "tab:blue"),
-        ("position error (truth)", "position_error", "tab:green"),
-    ]
-    w = 0.38
-    for k, (label, key, color) in enumerate(series):
-        med = np.array([_nan(getattr(r, f"{key}_median_m")) for r in results])
-        p95 = np.array([_nan(getattr(r, f"{key}_p95_m")) for r in results])
-        if not np.isfinite(p95).any():
-            continue
-        xs = x + (k - 0.5) * w
-        ax2.bar(xs, p95, w, color=color, alpha=0.35, label=f"{label} p95")
-        ax2.bar(xs, med, w, color=color, label=f"{label} median")
-    ax2.set(ylabel="error (m)")
-    ax2.set_xticks(x, names, rotation=45, ha="right", fontsize=8)
-    ax2.grid(alpha=0.3, axis="y")
-    if ax2.has_data():
-        ax2.legend(fontsize=8)
+            axes[0].annotate(r.status, (i, 3), ha="center", rotation=90, color="tab:red")
+    axes[0].set(ylabel="tracked (%)", ylim=(0, 105))
+    axes[0].set_title(f"campaign: {len(results)} flights, {sum(r.ok for r in results)} ok")
+    for ax, (label, med, p95, scale) in zip(axes[1:], panels, strict=True):
+        m = np.array([_nan(getattr(r, med)) for r in results]) * scale
+        p = np.array([_nan(getattr(r, p95)) for r in results]) * scale
+        ax.bar(x, p, 0.6, color="tab:orange", alpha=0.5, label="p95")
+        ax.bar(x, m, 0.6, color="tab:blue", label="median")
+        ax.set_ylabel(label)
+        ax.legend(fontsize=8, loc="upper right")
+    for ax in axes:
+        ax.grid(alpha=0.3, axis="y")
+    axes[-1].set_xticks(x, [r.flight for r in results], rotation=45, ha="right", fontsize=8)
     fig.tight_layout()
     return fig
 
