@@ -67,7 +67,7 @@ def batch_cmd(campaign, out, workers, scheduler, force):
         with signals.deferred():
             if done:
                 write_campaign_csv(e.results, csv_path)
-        signals.note(e, f"kept {len(done)} finished flights in {c.output}; rerun to resume")
+        signals.note(e, f"kept {len(done)} finished flight(s) in {c.output}; rerun to resume")
         raise
     write_campaign_csv(results, csv_path)
     save_png(campaign_figure(results), png_path, 100)
