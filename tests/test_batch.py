@@ -190,3 +190,24 @@ def test_scheduler_without_distributed_is_one_line(campaign, tmp_path, capsys, m
     code, _, err = batch(capsys, campaign, "--scheduler", "tcp://127.0.0.1:1", "--out", tmp_path)
     assert code == 2
     assert "needs distributed: pip install 'mirage-cli[batch]'" in one_error_line(err)
+
+
+def test_campaign_file_globs_defaults_and_relative_paths(tmp_path):
+    for f in ("v/f10.mp4", "v/f2.mp4", "imgs/0001.png", "m.mirage", "other.mirage", "p.yaml"):
+        (tmp_path / f).parent.mkdir(exist_ok=True)
+        (tmp_path / f).write_bytes(b"x")
+    (tmp_path / "c.yaml").write_text(
+        "defaults: {model: m.mirage, path: p.yaml, output: results, end: 4s}\n"
+        "flights:\n  - {video: imgs/, name: stills, model: other.mirage, start: 2}\n"
+        "videos: 'v/*.mp4'\n"
+    )
+    c = load_campaign(tmp_path / "c.yaml")
+    assert c.output == tmp_path / "results"
+    assert [f.name for f in c.flights] == ["stills", "f2", "f10"]  # natural order
+    stills, f2 = c.flights[0], c.flights[1]
+    assert stills.model == str(tmp_path / "other.mirage") and stills.video == str(tmp_path / "imgs")
+    assert f2.model == str(tmp_path / "m.mirage") and f2.path == str(tmp_path / "p.yaml")
+    assert (str(stills.start), str(stills.end), f2.start) == ("2", "4s", None)
+    assert (
+        load_campaign(tmp_path / "c.yaml", tmp_path / "elsewhere").output == tmp_path / "elsewhere"
+    )
