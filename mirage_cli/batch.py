@@ -30,7 +30,7 @@ import click
 import numpy as np
 
 from . import __version__, fileio, signals, ui
-from .errors import InputError, MirageError
+from .errors import InputError, MirageError, cv_message
 from .validate import FRAME_OR_TIME, When
 
 TOP_KEYS = ("defaults", "flights", "videos")
@@ -250,7 +250,7 @@ def run_flight(flight: Flight, out: str | os.PathLike) -> FlightResult:
     except click.ClickException as e:
         return FlightResult(flight.name, "failed", seconds=_secs(t0), reason=e.format_message())
     except Exception as e:  # noqa: BLE001 - one flight's bug must not stop the campaign
-        reason = f"unexpected {type(e).__name__}: {errors_line(e)}"
+        reason = f"unexpected {type(e).__name__}: {cv_message(e)}"
         return FlightResult(flight.name, "failed", seconds=_secs(t0), reason=reason)
     res.seconds = _secs(t0)
     marker = {
@@ -263,12 +263,6 @@ def run_flight(flight: Flight, out: str | os.PathLike) -> FlightResult:
     with fileio.atomic_write(d / MARKER) as f:
         json.dump(marker, f, indent=1)
     return res
-
-
-def errors_line(e: Exception) -> str:
-    from .errors import cv_message
-
-    return cv_message(e)
 
 
 def _secs(t0: float) -> float:
@@ -319,7 +313,9 @@ def result_of(name: str, table, summary: dict) -> FlightResult:
 
     Path error is the distance to the nearest point of the desired path (cross-track and
     height error together)."""
-    path_err = np.hypot(table["cross_track_m"].to_numpy(float), table["height_error_m"])
+    path_err = np.hypot(
+        table["cross_track_m"].to_numpy(float), table["height_error_m"].to_numpy(float)
+    )
     r = FlightResult(name, "ok", frames=summary["frames"], tracked_pct=summary["tracked_pct"])
     r.path_error_median_m, r.path_error_p95_m = _median_p95(path_err)
     if "position_error_m" in table:
@@ -563,7 +559,7 @@ def _run_dask(todo: list[Flight], out: str, client, got) -> None:
             try:
                 got(fut.result())
             except Exception as e:  # noqa: BLE001 - e.g. the worker cannot import mirage_cli
-                reason = f"on the Dask worker: {type(e).__name__}: {errors_line(e)}"
+                reason = f"on the Dask worker: {type(e).__name__}: {cv_message(e)}"
                 got(FlightResult(futures[fut].name, "failed", reason=reason))
     except KeyboardInterrupt:
         with contextlib.suppress(Exception):

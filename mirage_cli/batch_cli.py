@@ -58,7 +58,7 @@ def batch_cmd(campaign, out, workers, scheduler, force):
     c = load_campaign(campaign, out)
     ensure_dir(c.output)
     csv_path, png_path = check_writable(c.output / CAMPAIGN_CSV), c.output / CAMPAIGN_PNG
-    where = f"Dask scheduler {scheduler}" if scheduler else _workers_text(workers, c.flights)
+    where = f"Dask scheduler {scheduler}" if scheduler else _workers_text(workers)
     ui.echo(f"batch: {len(c.flights)} flights from {campaign} into {c.output}/ ({where})")
     try:
         results = run_campaign(c, workers, scheduler, force, on_result=_say)
@@ -83,7 +83,7 @@ def batch_cmd(campaign, out, workers, scheduler, force):
         )
 
 
-def _workers_text(workers, flights) -> str:
+def _workers_text(workers: int | None) -> str:
     import os
 
     n = workers or os.cpu_count() or 1
