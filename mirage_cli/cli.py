@@ -31,6 +31,11 @@ _USER_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EI
 # command runs or shows its help, so `mirage --version` and `mirage --help` stay instant;
 # tests/test_cli.py checks the summaries against the commands' own help.
 COMMANDS = {
+    "batch": (
+        "batch_cli",
+        "batch_cmd",
+        "Track and report every flight of a campaign YAML, in parallel; re-runs resume.",
+    ),
     "build-model": (
         "build_model_cli",
         "build_model_cmd",
