@@ -271,38 +271,26 @@ def _secs(t0: float) -> float:
 
 def _track_and_report(flight: Flight, d: Path) -> FlightResult:
     """What `mirage track` then `mirage report --summary` do, without their printing."""
-    from .camera import Camera
-    from .frames import FrameSource, matching_camera
+    from .frames import FrameSource
     from .model import LandmarkModel
     from .path import load_path
     from .report import make_report
     from .report_cli import write_report
     from .track import Tracker, TrackSettings
-    from .track_cli import track_to_files
-    from .trajectory import guess_format, match_times, read_pose_csv, read_trajectory
+    from .track_cli import track_to_files, tracking_camera
+    from .trajectory import read_pose_csv
+    from .truth import load_truth
     from .validate import frame_range
 
     desired = load_path(flight.path)
     model = LandmarkModel.load(flight.model)
-    camera = model.camera
-    if flight.camera:
-        camera = Camera.load(flight.camera)
-        if not camera.same_as(model.camera, tol_px=1.0):
-            raise InputError(
-                f"model {flight.model} was built with another camera than {flight.camera}; "
-                "rebuild the model or pass the model's camera"
-            )
     src = FrameSource([flight.video])
+    camera = tracking_camera(model, flight.model, flight.camera, src)
     first, last = frame_range(flight.start, flight.end, src.fps)
-    tracker = Tracker(model, matching_camera(camera, *src.size), TrackSettings())
+    tracker = Tracker(model, camera, TrackSettings())
     track_to_files(src, tracker, d / "poses.csv", first, last)
     table = read_pose_csv(d / "poses.csv")
-    truth = None
-    if flight.truth:
-        fmt = guess_format(flight.truth)
-        truth = read_trajectory(flight.truth, fmt)
-        if fmt != "csv":
-            truth = match_times(truth, table)
+    truth = load_truth(flight.truth, table) if flight.truth else None  # CSV, TUM or bag
     rep = make_report(table, desired, truth)
     write_report(rep, d / "report.csv", d / "summary.yaml")
     return result_of(flight.name, rep.table, rep.summary)

@@ -137,26 +137,11 @@ def track_cmd(
         rerun_module()  # without the [viz] extra: one line now, not after the tracking
         check_room(rerun_path)
     model = LandmarkModel.load(require_file(model_path, "model file"))
-    camera = model.camera
-    if camera_path:
-        camera = Camera.load(camera_path)
-        if not camera.same_as(model.camera, tol_px=1.0):
-            raise InputError(
-                f"model {model_path} was built with another camera than "
-                f"{camera_path}; rebuild the model or pass the model's camera"
-            )
     src = FrameSource(with_topic(video, topic), fps=fps)
-    if not camera_path and (info := src.camera()) is not None:
-        if not info.same_as(model.camera, tol_px=1.0):
-            raise InputError(
-                f"model {model_path} was built with another camera than the camera_info of "
-                f"{src.bag.topic} in {src.video}; rebuild the model or pass --camera"
-            )
-        camera = info
+    camera = tracking_camera(model, model_path, camera_path, src)
     first, last = frame_range(start, end, src.fps)  # an empty range fails before any output
     if src.count == 0 and src.is_video:
         ui.log.warning(f"{src.video}: frame count unknown; reading until the end")
-    camera = matching_camera(camera, *src.size)
     if method == "ap3p":
         ui.log.warning("ap3p solves from 3 points only: for comparing solvers, not for results")
     settings = TrackSettings(
@@ -168,6 +153,27 @@ def track_cmd(
     )
     tracker = Tracker(model, camera, settings)
     track_to_files(src, tracker, out, first or 0, last, every, overlay, also, rerun_path)
+
+
+def tracking_camera(model, model_path, camera_path, src):
+    """The camera to track `src` with: the camera file, else a bag's camera_info, else the
+    model's own; it must be the model's camera (at the frames' size)."""
+    camera = model.camera
+    if camera_path:
+        camera = Camera.load(camera_path)
+        if not camera.same_as(model.camera, tol_px=1.0):
+            raise InputError(
+                f"model {model_path} was built with another camera than "
+                f"{camera_path}; rebuild the model or pass the model's camera"
+            )
+    elif (info := src.camera()) is not None:
+        if not info.same_as(model.camera, tol_px=1.0):
+            raise InputError(
+                f"model {model_path} was built with another camera than the camera_info of "
+                f"{src.bag.topic} in {src.video}; rebuild the model or pass --camera"
+            )
+        camera = info
+    return matching_camera(camera, *src.size)
 
 
 def track_to_files(
