@@ -28,7 +28,7 @@ from mirage_cli.frames import FrameSource
 N = 5  # frames of the orbit in each bag
 T0 = 1_700_000_000  # header stamps start here (s), 30 fps
 KINDS = ("ros1", "sqlite3", "mcap")
-TRACKED = ("ros1", "mcap")  # tracked end to end; all KINDS are read frame by frame
+TRACKED = KINDS  # every storage tracked end to end (and read frame by frame)
 IMG, INFO = "/cam/image_raw", "/cam/camera_info"
 
 
@@ -197,9 +197,8 @@ def assert_error(code: int, err: str, contains: str) -> None:
 
 @pytest.fixture(scope="module")
 def tracked(bags, sample_model):
-    """`mirage track` on the PNG frames and on a ROS 1 and a ROS 2 bag (camera from
-    camera_info). Each run spends ~2 s loading the model, so the sqlite3 bag is checked
-    through its frames instead (`test_every_storage_yields_the_same_frames`)."""
+    """`mirage track` on the PNG frames and on a ROS 1 bag and a ROS 2 bag of each storage
+    (sqlite3, mcap; camera from camera_info)."""
     out = {}
     for name in ("pngs", *TRACKED):
         out[name] = bags[name].parent / f"track_{name}.csv"
