@@ -34,8 +34,9 @@ from .errors import InputError, MirageError, cv_message
 from .validate import FRAME_OR_TIME, When
 
 TOP_KEYS = ("defaults", "flights", "videos")
-DEFAULT_KEYS = ("model", "camera", "path", "output", "start", "end")
-FLIGHT_KEYS = ("video", "name", "model", "camera", "path", "truth", "start", "end")
+TRUTH_KEYS = ("truth_topic", "truth_transform", "t_offset", "t_max_diff")  # as mirage report's
+DEFAULT_KEYS = ("model", "camera", "path", "output", "start", "end", *TRUTH_KEYS)
+FLIGHT_KEYS = ("video", "name", "model", "camera", "path", "truth", "start", "end", *TRUTH_KEYS)
 MARKER = "done.json"
 MARKER_FORMAT = 1
 OUTPUTS = ("poses.csv", "report.csv", "summary.yaml")
@@ -62,6 +63,10 @@ class Flight:
     truth: str | None = None
     start: When | None = None
     end: When | None = None
+    truth_topic: str | None = None  # a bag's pose topic (default: its only one)
+    truth_transform: str | None = None  # T_body_camera, "x y z qw qx qy qz"
+    t_offset: float = 0.0  # s added to the truth stamps (TUM, bags)
+    t_max_diff: float = 0.01  # s: nearest truth stamp within this
 
 
 @dataclass(frozen=True)
@@ -199,10 +204,12 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
             continue
         p = _abs(base, value)
         try:
-            fileio.require_file(p, f"{key} file")
+            if not (key == "truth" and _is_bag(p)):  # a ROS 2 bag is a folder
+                fileio.require_file(p, f"{key} file")
         except InputError as e:
             raise InputError(f"{where}: {e}") from None
         files[key] = str(p)
+    truth = _truth_options(get, base, where)
     when = {}
     for key in ("start", "end"):
         value = get(key, what="frame number or seconds ('4s')")
@@ -216,7 +223,44 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
     name = str(get("name", what="name") or _default_name(vpath))
     if name.startswith(".") or "/" in name or "\\" in name or name in (CAMPAIGN_CSV, CAMPAIGN_PNG):
         raise InputError(f"{where}: name '{name}' must be a plain folder name")
-    return Flight(name, str(vpath), path=files.pop("path"), **files, **when)
+    return Flight(name, str(vpath), path=files.pop("path"), **files, **when, **truth)
+
+
+def _is_bag(p: Path) -> bool:
+    from .bags import is_bag_path
+
+    return is_bag_path(p)
+
+
+def _truth_options(get, base: Path, where: str) -> dict:
+    """The truth keys, checked as `mirage report` checks its options; a transform that
+    names a file is resolved against the campaign's folder."""
+    from .truth import BodyToCamera
+
+    out: dict = {}
+    topic = get("truth_topic", what="topic name")
+    out["truth_topic"] = None if topic is None else str(topic)
+    transform = get("truth_transform", what="'x y z qw qx qy qz' or a file")
+    if transform is not None:
+        transform = str(transform)
+        if _abs(base, transform).is_file():
+            transform = str(_abs(base, transform))
+        try:
+            BodyToCamera.parse(transform)
+        except InputError as e:
+            raise InputError(f"{where}: 'truth_transform' {e}") from None
+    out["truth_transform"] = transform
+    for key, low, default in (("t_offset", None, 0.0), ("t_max_diff", 0.0, 0.01)):
+        value = get(key, what="number of seconds")
+        if value is None:
+            out[key] = default
+            continue
+        v = float(value)
+        if not np.isfinite(v) or (low is not None and v <= low):
+            bound = f"a finite number above {low:g}" if low is not None else "a finite number"
+            raise InputError(f"{where}: '{key}' must be {bound} of seconds, not {value}")
+        out[key] = v
+    return out
 
 
 def _default_name(video: Path) -> str:
@@ -279,7 +323,7 @@ def _track_and_report(flight: Flight, d: Path) -> FlightResult:
     from .track import Tracker, TrackSettings
     from .track_cli import track_to_files, tracking_camera
     from .trajectory import read_pose_csv
-    from .truth import load_truth
+    from .truth import BodyToCamera, TruthSettings, load_truth
     from .validate import frame_range
 
     desired = load_path(flight.path)
@@ -290,7 +334,15 @@ def _track_and_report(flight: Flight, d: Path) -> FlightResult:
     tracker = Tracker(model, camera, TrackSettings())
     track_to_files(src, tracker, d / "poses.csv", first, last)
     table = read_pose_csv(d / "poses.csv")
-    truth = load_truth(flight.truth, table) if flight.truth else None  # CSV, TUM or bag
+    truth = None
+    if flight.truth:  # a pose CSV, TUM or a bag pose topic, as `mirage report --truth`
+        opts = TruthSettings(
+            flight.truth_topic,
+            BodyToCamera.parse(flight.truth_transform),
+            flight.t_offset,
+            flight.t_max_diff,
+        )
+        truth = load_truth(flight.truth, table, opts)
     rep = make_report(table, desired, truth)
     write_report(rep, d / "report.csv", d / "summary.yaml")
     return result_of(flight.name, rep.table, rep.summary)
@@ -342,8 +394,10 @@ def fingerprint(flight: Flight) -> list:
             out += [_stat(f) for f in sorted(p.iterdir()) if f.is_file()]
         else:
             out.append(_stat(p))
-    for f in (flight.model, flight.camera, flight.path, flight.truth):
-        if f:
+    for f in (flight.model, flight.camera, flight.path, flight.truth, flight.truth_transform):
+        if f and Path(f).is_dir():  # a ROS 2 bag
+            out += [_stat(g) for g in sorted(Path(f).iterdir()) if g.is_file()]
+        elif f and Path(f).is_file():
             out.append(_stat(Path(f)))
     return out
 
@@ -358,6 +412,12 @@ def options_hash(flight: Flight) -> str:
         "start": str(flight.start) if flight.start else None,
         "end": str(flight.end) if flight.end else None,
         "truth": bool(flight.truth),
+        "truth_options": [
+            flight.truth_topic,
+            flight.truth_transform,
+            flight.t_offset,
+            flight.t_max_diff,
+        ],  # fmt: skip
         "track": dataclasses.asdict(TrackSettings()),
     }
     return hashlib.sha256(json.dumps(opts, sort_keys=True).encode()).hexdigest()[:16]

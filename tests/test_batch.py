@@ -9,6 +9,7 @@ import signal
 import sys
 
 import cv2
+import numpy as np
 import pandas as pd
 import pytest
 from conftest import SAMPLE
@@ -210,3 +211,40 @@ def test_campaign_file_globs_defaults_and_relative_paths(tmp_path):
     assert (
         load_campaign(tmp_path / "c.yaml", tmp_path / "elsewhere").output == tmp_path / "elsewhere"
     )
+
+
+def test_campaign_truth_from_tum_with_offset_and_transform(campaign, tmp_path, capsys):
+    """A flight's truth options are `mirage report`'s: a TUM file of a motion-capture body,
+    its clock 0.5 s off and the camera 4 cm from the body, gives the pose-CSV truth's errors."""
+    from mirage_cli.pose import Pose, matrix_from_quat, quat_from_matrix
+    from mirage_cli.trajectory import read_pose_csv, row_pose
+
+    flights = campaign.parent / "flights"
+    q_bc = np.array([0.5, -0.5, 0.5, -0.5])  # camera looking along the body's x axis
+    T_bc = Pose(matrix_from_quat(q_bc), np.array([0.04, 0.0, -0.02]))  # camera -> body
+    truth = read_pose_csv(flights / "north_truth.csv")
+    rows = []
+    for i in range(len(truth)):
+        T_wb = row_pose(truth.iloc[i]).inverse() @ T_bc.inverse()  # body -> W
+        q = quat_from_matrix(T_wb.R)
+        rows.append([truth["time_s"].iloc[i] - 0.5, *T_wb.t, *q[[1, 2, 3, 0]]])
+    np.savetxt(tmp_path / "mocap.tum", np.array(rows), fmt="%.17g")
+    head = campaign.read_text().split("flights:")[0]  # the defaults: model, path
+    text = head.replace("\n  path:", "\n  t_offset: 0.5\n  path:") + (
+        f"flights:\n  - {{video: {flights / 'north.mp4'}, name: csv,\n"
+        f"     truth: {flights / 'north_truth.csv'}, t_offset: 0}}\n"
+        f"  - {{video: {flights / 'north.mp4'}, name: tum, truth: {tmp_path / 'mocap.tum'},\n"
+        f"     truth_transform: '0.04 0 -0.02 {' '.join(map(str, q_bc))}'}}\n"
+    )
+    (tmp_path / "c.yaml").write_text(text)
+    code, out, err = batch(capsys, tmp_path / "c.yaml", "--workers", 1, "--out", tmp_path / "o")
+    assert code == 0, err
+    cols = ["position_error_m", "rotation_error_deg"]
+    ref = pd.read_csv(tmp_path / "o" / "csv" / "report.csv")[cols]
+    got = pd.read_csv(tmp_path / "o" / "tum" / "report.csv")[cols]
+    assert ref.notna().all().all() and len(ref) == N
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    bad = text.replace("t_offset: 0.5", "t_offset: .inf")
+    (tmp_path / "bad.yaml").write_text(bad)
+    code, _, err = batch(capsys, tmp_path / "bad.yaml", "--out", tmp_path / "b")
+    assert code == 2 and "'t_offset' must be a finite number" in one_error_line(err)
