@@ -1,6 +1,11 @@
+import contextlib
+import io
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -22,6 +27,38 @@ def run_mirage(*args, cwd=None):
 @pytest.fixture
 def mirage():
     return run_mirage
+
+
+@contextlib.contextmanager
+def own_signal_handlers():
+    """cli.main installs its SIGINT / SIGTERM handlers; give pytest its own back afterwards."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+
+
+def run_here(*args, cwd=None):
+    """The CLI in this process, as `run_mirage` runs it in a subprocess (same returncode,
+    stdout, stderr) but without an interpreter start-up and imports per call."""
+    from mirage_cli import cli
+
+    out, err, old = io.StringIO(), io.StringIO(), os.getcwd()
+    try:
+        if cwd is not None:
+            os.chdir(cwd)
+        with (
+            own_signal_handlers(),
+            contextlib.redirect_stdout(out),
+            contextlib.redirect_stderr(err),
+            pytest.raises(SystemExit) as e,
+        ):
+            cli.main([str(a) for a in args])
+    finally:
+        os.chdir(old)
+    return SimpleNamespace(returncode=e.value.code, stdout=out.getvalue(), stderr=err.getvalue())
 
 
 def assert_one_line_error(proc, code=2, contains=None):

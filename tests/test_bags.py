@@ -3,16 +3,12 @@ frames of sample_data/orbit.mp4) and motion-capture truth in `mirage report`."""
 
 from __future__ import annotations
 
-import contextlib
-import io
-import signal
-
 import cv2
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from conftest import SAMPLE
+from conftest import SAMPLE, run_here
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
@@ -20,7 +16,6 @@ from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
 from mirage_cli import bags as bags_module
-from mirage_cli import cli
 from mirage_cli.bags import BagRef, read_poses
 from mirage_cli.camera import Camera
 from mirage_cli.frames import FrameSource
@@ -163,28 +158,10 @@ def bags(orbit, tmp_path_factory):
     return out
 
 
-@contextlib.contextmanager
-def _own_signal_handlers():
-    """cli.main installs its handlers; give pytest its own back afterwards."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, h in saved.items():
-            signal.signal(s, h)
-
-
 def mirage(*argv) -> tuple[int, str]:
     """`mirage ARGV` in this process (one import for every run): exit code and stderr."""
-    err = io.StringIO()
-    with (
-        _own_signal_handlers(),
-        contextlib.redirect_stderr(err),
-        contextlib.redirect_stdout(io.StringIO()),
-        pytest.raises(SystemExit) as e,
-    ):
-        cli.main(["-q", *map(str, argv)])
-    return e.value.code, err.getvalue()
+    p = run_here("-q", *argv)
+    return p.returncode, p.stderr
 
 
 def assert_error(code: int, err: str, contains: str) -> None:

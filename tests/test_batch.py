@@ -4,15 +4,13 @@ finished flights, and refuses a bad campaign file with one line."""
 
 from __future__ import annotations
 
-import contextlib
-import signal
 import sys
 
 import cv2
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SAMPLE
+from conftest import SAMPLE, own_signal_handlers
 
 from mirage_cli import cli
 from mirage_cli.batch import OUTPUTS, load_campaign
@@ -75,21 +73,10 @@ def cluster():
         del warm
 
 
-@contextlib.contextmanager
-def _own_signal_handlers():
-    """cli.main installs its handlers; give pytest its own back afterwards."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, h in saved.items():
-            signal.signal(s, h)
-
-
 def batch(capsys, *args) -> tuple[int, str, str]:
     """`mirage batch ...` in this process (the model and solver load once for all)."""
     capsys.readouterr()
-    with _own_signal_handlers(), pytest.raises(SystemExit) as e:
+    with own_signal_handlers(), pytest.raises(SystemExit) as e:
         cli.main(["batch", *map(str, args)])
     out, err = capsys.readouterr()
     return e.value.code, out, err

@@ -6,7 +6,7 @@ import re
 import click
 import pytest
 import yaml
-from conftest import ROOT, assert_one_line_error
+from conftest import ROOT, assert_one_line_error, run_here
 
 from mirage_cli.build_model import BuildSettings
 from mirage_cli.calibrate import CalibOptions
@@ -111,15 +111,16 @@ def test_help_shows_the_core_defaults(mirage):
         ("- track\n", "must be a mapping of command -> options"),
     ],
 )
-def test_config_mistakes_are_one_line_errors(mirage, tmp_path, text, contains):
+def test_config_mistakes_are_one_line_errors(tmp_path, text, contains):
     cfg = tmp_path / "proj.yaml"
     cfg.write_text(text)
-    p = mirage("--config", cfg, "track", "v.mp4", "--model", tmp_path / "none.mirage")
+    # in this process (24 runs): the CLI's one-line errors are the same as in a subprocess
+    p = run_here("--config", cfg, "track", "v.mp4", "--model", tmp_path / "none.mirage")
     assert_one_line_error(p, 2, contains)
     assert str(cfg) in p.stderr
     # the same from ./mirage.yaml, before any command runs (even --help)
     (tmp_path / "mirage.yaml").write_text(text)
-    assert_one_line_error(mirage("report", "--help", cwd=tmp_path), 2, contains)
+    assert_one_line_error(run_here("report", "--help", cwd=tmp_path), 2, contains)
 
 
 def test_out_of_range_value_fails_when_used_and_names_the_file(mirage, tmp_path):

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, SAMPLE
+from conftest import ROOT, SAMPLE, own_signal_handlers
 
 from mirage_cli import cli
 
@@ -519,21 +519,10 @@ def world(tmp_path, sample_model):
     }
 
 
-@contextlib.contextmanager
-def _own_signal_handlers():
-    """cli.main installs its handlers; give pytest its own back afterwards."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, h in saved.items():
-            signal.signal(s, h)
-
-
 def run_in_process(argv: list[str], capsys) -> tuple[int, str, list]:
     capsys.readouterr()
     with (
-        _own_signal_handlers(),
+        own_signal_handlers(),
         warnings.catch_warnings(record=True) as caught,
         pytest.raises(SystemExit) as e,
     ):

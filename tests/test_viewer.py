@@ -3,7 +3,6 @@ pose CSV and the model (mirage_cli/viewer.py)."""
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 from collections import defaultdict
@@ -13,7 +12,7 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SAMPLE, assert_one_line_error
+from conftest import SAMPLE, assert_one_line_error, own_signal_handlers
 
 from mirage_cli import cli, track, track_cli, viewer
 from mirage_cli.errors import EnvironmentFailure, InputError
@@ -54,14 +53,9 @@ def column(batches, name, index="frame") -> tuple[list, list]:
 
 def mirage_here(*args, capsys) -> SimpleNamespace:
     """Run the CLI in this process (no interpreter start-up): exit code, stdout, stderr."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     capsys.readouterr()
-    try:
-        with pytest.raises(SystemExit) as e:
-            cli.main([str(a) for a in args])
-    finally:  # cli.main installs its signal handlers: give pytest its own back
-        for s, h in saved.items():
-            signal.signal(s, h)
+    with own_signal_handlers(), pytest.raises(SystemExit) as e:
+        cli.main([str(a) for a in args])
     out, err = capsys.readouterr()
     return SimpleNamespace(returncode=e.value.code, stdout=out, stderr=err)
 
