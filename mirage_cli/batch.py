@@ -31,7 +31,7 @@ import numpy as np
 
 from . import __version__, fileio, signals, ui
 from .errors import InputError, MirageError, cv_message
-from .validate import FRAME_OR_TIME, When
+from .validate import FRAME_OR_TIME, FiniteFloat, When
 
 TOP_KEYS = ("defaults", "flights", "videos")
 TRUTH_KEYS = ("truth_topic", "truth_transform", "t_offset", "t_max_diff")  # as mirage report's
@@ -235,7 +235,7 @@ def _is_bag(p: Path) -> bool:
 def _truth_options(get, base: Path, where: str) -> dict:
     """The truth keys, checked as `mirage report` checks its options; a transform that
     names a file is resolved against the campaign's folder."""
-    from .truth import BodyToCamera
+    from .truth import BodyToCamera, TruthSettings
 
     out: dict = {}
     topic = get("truth_topic", what="topic name")
@@ -250,16 +250,18 @@ def _truth_options(get, base: Path, where: str) -> dict:
         except InputError as e:
             raise InputError(f"{where}: 'truth_transform' {e}") from None
     out["truth_transform"] = transform
-    for key, low, default in (("t_offset", None, 0.0), ("t_max_diff", 0.0, 0.01)):
+    # the checks and defaults of report's --t-offset / --t-max-diff
+    for key, kind, default in (
+        ("t_offset", FiniteFloat(), TruthSettings.t_offset_s),
+        ("t_max_diff", FiniteFloat(min=0, min_open=True), TruthSettings.t_max_diff_s),
+    ):
         value = get(key, what="number of seconds")
-        if value is None:
-            out[key] = default
-            continue
-        v = float(value)
-        if not np.isfinite(v) or (low is not None and v <= low):
-            bound = f"a finite number above {low:g}" if low is not None else "a finite number"
-            raise InputError(f"{where}: '{key}' must be {bound} of seconds, not {value}")
-        out[key] = v
+        try:
+            out[key] = default if value is None else kind.convert(value, None, None)
+        except click.BadParameter as e:
+            above = " above 0" if key == "t_max_diff" else ""
+            msg = f"{where}: '{key}' must be a finite number of seconds{above}: {e.message}"
+            raise InputError(msg) from None
     return out
 
 

@@ -231,7 +231,8 @@ def test_campaign_truth_from_tum_with_offset_and_transform(campaign, tmp_path, c
     got = pd.read_csv(tmp_path / "o" / "tum" / "report.csv")[cols]
     assert ref.notna().all().all() and len(ref) == N
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
-    bad = text.replace("t_offset: 0.5", "t_offset: .inf")
-    (tmp_path / "bad.yaml").write_text(bad)
-    code, _, err = batch(capsys, tmp_path / "bad.yaml", "--out", tmp_path / "b")
-    assert code == 2 and "'t_offset' must be a finite number" in one_error_line(err)
+    for value in (".inf", "abc"):  # one line, exit 2, as report's --t-offset
+        bad = text.replace("t_offset: 0.5", f"t_offset: {value}")
+        (tmp_path / "bad.yaml").write_text(bad)
+        code, _, err = batch(capsys, tmp_path / "bad.yaml", "--out", tmp_path / "b")
+        assert code == 2 and "'t_offset' must be a finite number" in one_error_line(err)
