@@ -40,6 +40,26 @@ def own_signal_handlers():
             signal.signal(s, h)
 
 
+@contextlib.contextmanager
+def small_tmpfs(mnt: Path, size: str = "256k"):
+    """A tiny tmpfs mounted at `mnt` (a full disk on demand); the test is skipped where
+    mounting is not allowed (not root, no mount)."""
+    import shutil
+
+    mnt.mkdir()
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("a full disk needs root to mount a small tmpfs")
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)], capture_output=True
+    )
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
 def run_here(*args, cwd=None):
     """The CLI in this process, as `run_mirage` runs it in a subprocess (same returncode,
     stdout, stderr) but without an interpreter start-up and imports per call."""

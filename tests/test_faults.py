@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, SAMPLE, own_signal_handlers
+from conftest import ROOT, SAMPLE, own_signal_handlers, small_tmpfs
 
 from mirage_cli import cli
 
@@ -573,16 +573,7 @@ def test_catalogue_size():
 @pytest.fixture
 def full_disk(tmp_path):
     """A 256 KiB tmpfs filled to the last byte, holding good outputs from before."""
-    mnt = tmp_path / "full"
-    mnt.mkdir()
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("a full disk needs root to mount a small tmpfs")
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(mnt)], capture_output=True
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
-    try:
+    with small_tmpfs(tmp_path / "full") as mnt:
         for name, text in PROTECTED.items():
             (mnt / name).write_text(text)
         with contextlib.suppress(OSError), open(mnt / "filler", "wb", buffering=0) as f:
@@ -592,8 +583,6 @@ def full_disk(tmp_path):
             while True:  # the last partial block
                 f.write(b"\0")
         yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], capture_output=True)
 
 
 FULL_DISK = [

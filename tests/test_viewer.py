@@ -2,7 +2,6 @@
 pose CSV and the model (mirage_cli/viewer.py)."""
 
 import os
-import shutil
 import subprocess
 import sys
 from collections import defaultdict
@@ -12,7 +11,7 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SAMPLE, assert_one_line_error, own_signal_handlers
+from conftest import SAMPLE, assert_one_line_error, own_signal_handlers, small_tmpfs
 
 from mirage_cli import cli, track, track_cli, viewer
 from mirage_cli.errors import EnvironmentFailure, InputError
@@ -239,19 +238,8 @@ def test_interrupt_keeps_the_recording_of_finished_frames(sample_model, tmp_path
 @pytest.fixture
 def small_disk(tmp_path):
     """A 256 KiB tmpfs: a recording fills it within a few frames."""
-    mnt = tmp_path / "small"
-    mnt.mkdir()
-    if os.geteuid() != 0 or shutil.which("mount") is None:
-        pytest.skip("a full disk needs root to mount a small tmpfs")
-    r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", mnt], capture_output=True
-    )
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
-    try:
+    with small_tmpfs(tmp_path / "small") as mnt:
         yield mnt
-    finally:
-        subprocess.run(["umount", str(mnt)], capture_output=True)
 
 
 def test_full_disk_is_one_line_and_leaves_nothing(sample_model, small_disk, capsys):
