@@ -215,12 +215,18 @@ class LandmarkModel:
             # a traceback on stderr: hold it until the object is whole (then it is raised)
             with signals.deferred():
                 zf = zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=1)
+            # likewise inside writestr: between opening an entry's write handle and its
+            # `with`, an interrupt leaves the handle open and close() then raises a
+            # ValueError that hides the interrupt; one entry takes milliseconds to write
             with zf as z:
-                z.writestr("manifest.json", json.dumps(manifest, indent=1))
+                entries = {"manifest.json": json.dumps(manifest, indent=1).encode()}
                 for k, a in arrays.items():
                     buf = io.BytesIO()
                     np.save(buf, a, allow_pickle=False)
-                    z.writestr(f"{k}.npy", buf.getvalue())
+                    entries[f"{k}.npy"] = buf.getvalue()
+                for name, data in entries.items():
+                    with signals.deferred():
+                        z.writestr(name, data)
 
     def _arrays(self) -> dict[str, np.ndarray]:
         kfs = self.keyframes
