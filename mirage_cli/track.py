@@ -292,14 +292,17 @@ class Tracker:
             kps = kps / np.float32(up) + np.array([x0, y0], np.float32)
             if len(kps) >= self.s.min_track_inliers:
                 res = self._guided(kps, desc, pred)
-                if res.ok:
+                # an uncertain pose found the landmark where predicted and says its view
+                # is too weak: relocalising (no prediction, a stricter gate) sees the same
+                # view and costs a full-frame detection more (4 m orbit: 200 ms a frame)
+                if res.ok or res.status == Status.UNCERTAIN:
                     return res
         kps, desc = detect(gray, self.detector)
         if desc is None or len(kps) < self.s.min_inliers:
             return FrameRecord(Status.LOST, mode="detect")
         if pred is not None and box is None:
             res = self._guided(kps, desc, pred)
-            if res.ok:
+            if res.ok or res.status == Status.UNCERTAIN:  # as above
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
 

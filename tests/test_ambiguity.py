@@ -182,3 +182,33 @@ def test_the_jump_limit_is_per_frame_since_the_last_ok_pose(model):
     assert tr._gate(est, 40, "detect", check_jump=True).status == "lost"
     tr.lost_run = 2
     assert tr._gate(est, 40, "detect", check_jump=True).status == "ok"
+
+
+def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, monkeypatch):
+    """While tracking, a guided pose that is `uncertain` found the landmark where predicted
+    and is too vague: the frame ends there (a full-frame detection and a relocalisation
+    would see the same view, 200 ms more a frame on the 4 m orbit). A `lost` guided pose
+    (the prediction was off) still goes on to the whole frame and relocalisation."""
+    from mirage_cli import track
+    from mirage_cli.trajectory import FrameRecord, Status
+
+    gray = np.zeros(model.camera.size[::-1], np.uint8)
+    feats = (np.full((50, 2), 100, np.float32), np.zeros((50, 128), np.float32))
+    for guided, want_shapes, want_reloc in (
+        (Status.UNCERTAIN, 1, 0),
+        (Status.LOST, 2, 1),
+    ):
+        shapes, reloc = [], []
+        monkeypatch.setattr(
+            track, "detect", lambda img, det, s=shapes: s.append(img.shape) or feats
+        )
+        monkeypatch.setattr(Tracker, "_guided", lambda *a, g=guided: FrameRecord(g, mode="detect"))
+        monkeypatch.setattr(
+            Tracker, "_relocalise", lambda *a, r=reloc: r.append(1) or FrameRecord(Status.LOST)
+        )
+        tr = Tracker(model, model.camera, TrackSettings())
+        tr.prev_pose = look_at([1.5, 0.0, 0.6], [0, 0, 0.3])
+        res = tr._detect(gray)
+        assert shapes[0] != gray.shape  # the predicted box first
+        assert (len(shapes), len(reloc)) == (want_shapes, want_reloc), (guided, shapes)
+        assert res.status == (guided if guided == Status.UNCERTAIN else Status.LOST)
