@@ -7,7 +7,9 @@ blur, far orbits at 2.5 m and 4 m from keyframes at 1.4 m (landmark ~70 px tall 
 plus the committed sample orbit. Every system gets the same landmark model, built from
 the scene's keyframes with `build-model`'s defaults, and the same decoded frames:
 
-- mirage: our tracker with its default settings (`mirage track`);
+- mirage: our tracker with its default settings (`mirage track`: each pose smoothed with
+  the 15 frames before and after it);
+- mirage --smooth 0: the same tracker, each frame's own pose;
 - plain OpenCV: benchmarks/track.py's SIFT + FLANN + solvePnPRansac + LM, every frame;
 - hloc-style: RootSIFT, mutual nearest neighbour + ratio test against the keyframes near
   the previous pose (all keyframes when lost), matches gated within 60 px of the
@@ -45,13 +47,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mirage_cli import __version__, track  # noqa: E402
+from mirage_cli import __version__, smooth, track  # noqa: E402
 from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
+from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
 from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
@@ -152,13 +155,20 @@ def get_model(keyframes: Path, camera: Camera) -> LandmarkModel:
 # --------------------------------------------------------------------------------------
 # systems: each returns per frame (pose or None, sigma_pos_m, sigma_rot_deg) and seconds
 # --------------------------------------------------------------------------------------
-def run_mirage(frames, model, camera):
-    """`mirage track`'s loop (track.run) with its default settings, frames in memory."""
+def run_mirage(frames, model, camera, lag=SmoothSettings.lag):
+    """`mirage track`'s loop (track.run, then the smoother) with its default settings,
+    frames in memory."""
     tr = Tracker(model, camera, TrackSettings())
     held = (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
     t0 = time.perf_counter()
-    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in track.run(held, tr)]
+    recs = smooth.run(track.run(held, tr), SmoothSettings(lag=lag))
+    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
     return out, time.perf_counter() - t0
+
+
+def run_unsmoothed(frames, model, camera):
+    """`mirage track --smooth 0`: each frame's own pose."""
+    return run_mirage(frames, model, camera, lag=0)
 
 
 def run_plain(frames, model, camera):
@@ -307,8 +317,10 @@ def run_hloc(frames, model, camera):
     return out, time.perf_counter() - t0
 
 
-SYSTEMS = {"mirage": run_mirage, "plain": run_plain, "hloc": run_hloc}
-SYSTEM_LABELS = {"mirage": "mirage (default)", "plain": "plain OpenCV", "hloc": "hloc-style"}
+SYSTEMS = {"mirage": run_mirage, "unsmoothed": run_unsmoothed, "plain": run_plain,
+           "hloc": run_hloc}  # fmt: skip
+SYSTEM_LABELS = {"mirage": "mirage (default)", "unsmoothed": "mirage --smooth 0",
+                 "plain": "plain OpenCV", "hloc": "hloc-style"}  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------

@@ -27,13 +27,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mirage_cli import track  # noqa: E402
+from mirage_cli import smooth, track  # noqa: E402
 from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
+from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.solver import METHODS  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
 from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
@@ -62,11 +63,12 @@ def get_model(camera: Camera, path: Path | None) -> LandmarkModel:
 
 
 def run_mirage(frames, model, camera, method):
-    """`mirage track`'s loop (track.run) over frames held in memory."""
+    """`mirage track`'s loop (track.run, then the smoother) over frames held in memory."""
     tr = Tracker(model, camera, TrackSettings(method=method))
     t0 = time.perf_counter()
     held = (Frame(i, i, float("nan"), f) for i, f in enumerate(frames))
-    poses = [rec.pose if rec.ok else None for rec in track.run(held, tr)]
+    recs = smooth.run(track.run(held, tr), SmoothSettings())
+    poses = [rec.pose if rec.ok else None for rec in recs]
     return poses, time.perf_counter() - t0
 
 

@@ -26,7 +26,7 @@ from .model import LandmarkModel, ground_points, point_twins
 from .pose import Pose
 from .signals import through_compiled_code
 from .solver import PoseEstimate, RansacOptions, RefineOptions, sandwich_covariance, solve_pose
-from .trajectory import FrameRecord, Status
+from .trajectory import FrameRecord, Measurement, Status
 
 
 @dataclass
@@ -166,7 +166,8 @@ class Tracker:
         self.twins = point_twins(model)
         self.on_landmark = ~ground_points(model.points)
         self.votes = ~self.twins & self.on_landmark  # may decide a relocalisation
-        self._sigma_res_m = float("nan")  # last gate's position sigma from residuals alone
+        self._frame_no = -1  # frames processed, for the smoother's anchors
+        self._anchor_no = -1  # the frame whose detection the flowed points come from
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
         self._uncertain_pose: Pose | None = None
         # where to detect while tracking: where the model has points (a subsample suffices;
@@ -187,11 +188,15 @@ class Tracker:
             and self.since_detect < self.s.redetect_every
         ):
             res = self._flow(gray)
+        self._frame_no += 1
         if res is None or not res.ok:
             res = self._detect(gray)
             if res.ok:
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
+                self._anchor_no = self._frame_no
+        if res.measurement is not None:  # flowed points share their anchor's errors
+            res.measurement.anchor = self._anchor_no if res.mode == "flow" else self._frame_no
         if res.ok:
             if self.prev_pose is not None and self.lost_run == 0:
                 self.velocity = res.pose @ self.prev_pose.inverse()
@@ -266,7 +271,8 @@ class Tracker:
             # points that slid along an edge bend the pose while the residuals stay small;
             # a smooth path predicts the pose well, so a flowed pose far from the
             # prediction (in the sigmas of its residuals) is checked by a detection
-            dev = est.pose.distance_to(pred) / max(self._sigma_res_m, 1e-9)
+            sigma_res = float(np.sqrt(max(np.trace(res.measurement.cov[3:, 3:]), 0.0)))
+            dev = est.pose.distance_to(pred) / max(sigma_res, 1e-9)
             if dev > self.s.flow_max_dev_sigma:
                 return None
         if res.ok:
@@ -403,33 +409,30 @@ class Tracker:
             parts.append(self._kf_cache[k])
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
 
-    def _sigmas(self, est: PoseEstimate, n: int, points=None) -> tuple[float, float]:
-        """1-sigma position (m) and rotation (deg) including the model's own error.
+    def _covariances(self, est: PoseEstimate, n: int, points=None):
+        """6x6 covariances (the solver's parametrisation) of the pose: what this frame's
+        residuals show, and the model's own error (shared with every frame that sees the
+        same points); the pose's is their sum.
 
-        What this frame's residuals show comes from the leverage-corrected sandwich
-        covariance of the inliers (`points`: X, uv and est.inliers; see
-        `solver.sandwich_covariance`), so a pose carried by a few bad or isolated points
-        is as uncertain as it is; without points, the solver's (J^T J)^-1 s_res^2. Errors
-        of the model points and of keypoint localisation on a face seen at an angle are
-        shared by neighbouring points and do not average out over n, so they are added
-        as the model's reprojection RMS over `model_error_points` independent points:
-        Cov = Cov_res + (J^T J)^-1 s_model^2 n / n_model.
+        What the residuals show comes from the leverage-corrected sandwich covariance of
+        the inliers (`points`: X, uv and est.inliers; see `solver.sandwich_covariance`), so
+        a pose carried by a few bad or isolated points is as uncertain as it is; without
+        points, the solver's (J^T J)^-1 s_res^2. Errors of the model points and of keypoint
+        localisation on a face seen at an angle are shared by neighbouring points and do
+        not average out over n, so they count as the model's reprojection RMS over
+        `model_error_points` independent points: (J^T J)^-1 s_model^2 n / n_model.
         """
         s2 = est.sigma_px**2
-        self._sigma_res_m = est.sigma_pos_m  # what the residuals alone say (flow check)
-        if not s2 > 0:
-            return est.sigma_pos_m, est.sigma_rot_deg
         res = est.covariance
+        if not s2 > 0:
+            return res, np.zeros((6, 6))
         if points is not None:
             X, uv = points
             inl = est.inliers
             sw = sandwich_covariance(X[inl], uv[inl], est.pose, self.camera, self.s.huber_px)
             if np.all(np.isfinite(sw)):
                 res = sw
-        self._sigma_res_m = float(np.sqrt(max(np.trace(res[3:, 3:]), 0.0)))
-        cov = res + est.covariance * (self.model_rms_px**2 * n / (self.s.model_error_points * s2))
-        pos = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
-        return pos, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+        return res, est.covariance * (self.model_rms_px**2 * n / (self.s.model_error_points * s2))
 
     def _gate(
         self,
@@ -454,7 +457,10 @@ class Tracker:
         )
         if not est.success:
             return res
-        res.sigma_pos_m, res.sigma_rot_deg = self._sigmas(est, ninl, points)
+        cov_res, cov_model = self._covariances(est, ninl, points)
+        cov = cov_res + cov_model
+        res.sigma_pos_m = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+        res.sigma_rot_deg = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique
         need = self.s.min_inliers if mode == "relocalise" else self.s.min_track_inliers
@@ -481,6 +487,10 @@ class Tracker:
         if points is not None:  # relative to the range: the inliers' median depth
             depth = float(np.median(est.pose.transform(points[0][est.inliers])[:, 2]))
             max_pos = min(max_pos, self.s.max_sigma_range * depth)
+        res.measurement = Measurement(
+            est.pose, cov_res, cov_model, max_sigma_pos_m=max_pos,
+            max_sigma_rot_deg=self.s.max_sigma_rot_deg,
+        )  # fmt: skip
         if not (res.sigma_pos_m <= max_pos and res.sigma_rot_deg <= self.s.max_sigma_rot_deg):
             res.status = Status.UNCERTAIN
             self._uncertain_pose = est.pose

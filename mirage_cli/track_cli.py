@@ -31,6 +31,7 @@ from .fileio import (
 from .frames import FrameSource, matching_camera, with_topic
 from .model import LandmarkModel
 from .plotting import draw_overlay
+from .smooth import Smoother, SmoothSettings
 from .solver import METHODS, warm_up
 from .track import Tracker, TrackSettings
 from .trajectory import FORMATS, TRACK_COLUMNS, Status, TrajectoryWriter
@@ -81,6 +82,13 @@ def also_write_options(f):
 )
 @click.option("--no-flow", is_flag=True, help="Detect and match in every frame (slower).")
 @shown(
+    "--smooth",
+    type=BoundedInt(min=0),
+    default=SmoothSettings.lag,
+    help="Smooth each pose with the N frames before and after it (a constant-velocity "
+    "prior; rows come N frames late); 0: each frame's own pose.",
+)
+@shown(
     "--min-inliers",
     type=BoundedInt(min=4),
     default=TrackSettings.min_inliers,
@@ -113,6 +121,7 @@ def track_cmd(
     every,
     redetect_every,
     no_flow,
+    smooth,
     min_inliers,
     max_rmse,
     overlay,
@@ -152,7 +161,10 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
-    track_to_files(src, tracker, out, first or 0, last, every, overlay, also, rerun_path)
+    track_to_files(
+        src, tracker, out, first or 0, last, every, overlay, also, rerun_path,
+        SmoothSettings(lag=smooth),
+    )  # fmt: skip
 
 
 def tracking_camera(model, model_path, camera_path, src):
@@ -177,10 +189,12 @@ def tracking_camera(model, model_path, camera_path, src):
 
 
 def track_to_files(
-    src, tracker, output, first=0, last=None, every=1, overlay=None, also=None, rerun=None
-) -> None:
+    src, tracker, output, first=0, last=None, every=1, overlay=None, also=None, rerun=None,
+    smooth: SmoothSettings | None = None,
+) -> None:  # fmt: skip
     """Track the frames, writing each record to the pose CSV (and to `also`, format name ->
-    file, e.g. {"tum": "poses.tum"}, the overlay and the Rerun recording) as it comes;
+    file, e.g. {"tum": "poses.tum"}, the overlay and the Rerun recording) as it comes
+    (`smooth.lag` frames late: default settings when None; lag 0: unsmoothed);
     print the summary.
     Ctrl-C or SIGTERM keeps the finished frames in every output, then the interrupt goes
     on (exit 130 / 143)."""
@@ -190,9 +204,11 @@ def track_to_files(
     points = tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
     outputs = [(output, "csv")] + [(path, fmt) for fmt, path in (also or {}).items() if path]
+    smoother = Smoother(smooth or SmoothSettings())
     stats = _track(
-        src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m, rerun
-    )
+        src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m, rerun,
+        smoother,
+    )  # fmt: skip
     _summary(stats, output)
     if rerun:
         ui.echo(f"       Rerun recording {rerun} (view it with: rerun {rerun})")
@@ -200,7 +216,9 @@ def track_to_files(
         raise stats["interrupted"]  # after the outputs are in place
 
 
-def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m, rerun=None) -> dict:
+def _track(
+    src, tracker, outputs, camera, first, last, every, overlay, axis_m, rerun, smoother
+) -> dict:
     """Run the tracker over the frames and write every record to every output as it comes.
     An interrupt keeps the finished frames (outputs renamed into place with further signals
     held) and is returned, to be raised once the summary is out."""
@@ -222,9 +240,9 @@ def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m, r
             rrd = stack.enter_context(TrackRecording(rerun, tracker.model, camera))
         bar = stack.enter_context(ui.progress(total, "tracking"))
         frames = src.frames(first, last, every)
-        try:
-            keep = ov is not None or rrd is not None
-            for rec in track.run(frames, tracker, keep_images=keep):
+
+        def emit(records):
+            for rec in records:
                 for w in writers:
                     w.write(rec)
                 if rrd is not None:  # before the overlay, which takes the image
@@ -235,12 +253,20 @@ def _track(src, tracker, outputs, camera, first, last, every, overlay, axis_m, r
                 if len(done) % 10 == 0:
                     rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
                     bar.update(10, f"{rate:.0f} frames/s")
+
+        try:
+            keep = ov is not None or rrd is not None
+            for rec in track.run(frames, tracker, keep_images=keep):
+                emit(smoother.push(rec))
+            with signals.deferred():  # the last frames held back by the smoother
+                emit(smoother.flush())
         except KeyboardInterrupt as e:
+            hold.enter_context(signals.deferred())  # a second signal waits for the files
+            emit(smoother.flush())  # the frames already tracked are kept
             if not writers[0].rows:
                 signals.note(e, f"no frame finished; {outputs[0][0]} not written")
                 raise
             interrupted = e
-            hold.enter_context(signals.deferred())  # a second signal waits for the files
         if not done and interrupted is None:
             raise InputError("no frames in the selected range (check --start/--end)")
     elapsed = time.perf_counter() - t_start

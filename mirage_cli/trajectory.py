@@ -54,6 +54,22 @@ class Status(str, Enum):
 
 
 @dataclass
+class Measurement:
+    """What the tracker measured in a frame with a pose (ok or uncertain), for the smoother:
+    the pose and its 6x6 covariance (the solver's parametrisation, see `PoseEstimate`) split
+    into what this frame's residuals show (`cov`) and the model's own error, shared with
+    every frame that sees the same points (`cov_shared`); the frame whose detection its
+    points come from (`anchor`), and the gate's limits."""
+
+    pose: Pose
+    cov: np.ndarray
+    cov_shared: np.ndarray
+    anchor: int = 0
+    max_sigma_pos_m: float = float("inf")
+    max_sigma_rot_deg: float = float("inf")
+
+
+@dataclass
 class FrameRecord:
     """One frame of a trajectory: its id, time, status, pose and tracking diagnostics."""
 
@@ -73,6 +89,7 @@ class FrameRecord:
     inlier_px: np.ndarray | None = field(default=None, repr=False)  # for overlays
     image: np.ndarray | None = field(default=None, repr=False)  # the frame, when kept
     extra: dict = field(default_factory=dict)  # other columns by name (landmark_visible)
+    measurement: Measurement | None = field(default=None, repr=False)  # for the smoother
 
     @property
     def ok(self) -> bool:

@@ -8,10 +8,11 @@ import pandas as pd
 import pytest
 from conftest import SAMPLE, assert_one_line_error, run_mirage
 
-from mirage_cli import track
+from mirage_cli import smooth, track
 from mirage_cli.camera import Camera
 from mirage_cli.frames import FrameSource
 from mirage_cli.model import LandmarkModel
+from mirage_cli.smooth import SmoothSettings
 from mirage_cli.synth import LANDMARK_TARGET
 from mirage_cli.track import Tracker, TrackSettings
 from mirage_cli.trajectory import POSE_COLUMNS, Status, read_pose_csv, read_trajectory, row_pose
@@ -114,12 +115,14 @@ def test_csv_tum_kitti_of_one_run_agree(orbit_run):
 
 
 def test_run_yields_the_cli_poses(orbit_run, sample_model):
-    """track.run in-process gives the rows the CLI wrote (the first 40 frames)."""
+    """track.run then smooth.run in-process give the rows the CLI wrote (the first 40
+    frames; their smoothing windows end 15 frames later, inside the 60 tracked)."""
     csv, _, _ = orbit_run
     cli = read_pose_csv(csv).iloc[:40]
     model = LandmarkModel.load(sample_model)
     src = FrameSource([SAMPLE / "orbit.mp4"])
-    recs = list(track.run(src.frames(end=40), Tracker(model, model.camera, TrackSettings())))
+    tracker = Tracker(model, model.camera, TrackSettings())
+    recs = list(smooth.run(track.run(src.frames(end=60), tracker), SmoothSettings()))[:40]
     assert [r.frame for r in recs] == list(range(40))
     assert [str(r.status) for r in recs] == cli["status"].tolist()
     assert np.allclose([r.time_s for r in recs], cli["time_s"], atol=1e-6)

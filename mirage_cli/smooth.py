@@ -1,0 +1,312 @@
+"""Fixed-lag smoothing of the tracked poses (`mirage track --smooth N`). Pure core.
+
+A far camera sees one face of a small landmark: each frame's pose is honest but vague in
+the direction where a sideways shift trades against a turn. The frames around it pin
+that direction, because a camera on a drone or robot cannot jump between frames. Each
+output frame is the maximum a-posteriori pose of a window of N frames before and after
+it: every measured pose (ok or uncertain, with its 6x6 covariance) against a
+constant-velocity prior (white-noise acceleration, second differences of rotation and
+centre). An offline tool may look ahead; a record is yielded N frames late and never
+changed afterwards, as `track.run` promises.
+
+What keeps it honest:
+- Flowed frames reuse the points of the detection they follow (their anchor), so their
+  errors are correlated: the k frames of one anchor in the window count as one
+  measurement (each covariance times k).
+- The model's own error is shared by every frame that sees the same points; it is not
+  averaged down but added back to the smoothed covariance.
+- A pose that does not fit the others (Mahalanobis distance beyond `outlier_chi2`) is
+  dropped from the window; if it is the output frame's own, that frame is `uncertain`.
+- More than `max_gap` frames without a pose split the trajectory: nothing is smoothed
+  across a look-away or a lost stretch.
+The smoothed pose is then gated like a tracked one (the measurement's own limits).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from .pose import Pose
+from .trajectory import FrameRecord, Measurement, Status
+
+
+@dataclass
+class SmoothSettings:
+    lag: int = 15  # frames before and after the output frame
+    accel_m_s2: float = 5.0  # white-noise acceleration of the camera centre (1 sigma)
+    ang_accel_deg_s2: float = 60.0  # ... and of its rotation
+    max_gap: int = 3  # more frames in a row without a pose split the trajectory
+    outlier_chi2: float = 22.46  # chi-square, 6 dof, p = 0.999
+    fps: float = 30.0  # frame rate when the records carry no times
+
+
+def _log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors of rotation matrices (..., 3, 3) -> (..., 3), stable near 0 and pi."""
+    R = np.asarray(R, float)
+    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    a = np.arccos(c)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)  # fmt: skip
+    sa = np.sin(a)
+    f = np.where(a < 1e-6, 0.5, a / (2 * np.where(sa > 1e-12, sa, 1.0)))
+    out = w * f[..., None]
+    near = np.pi - a < 1e-4
+    for i in np.ndindex(a.shape) if near.any() else ():  # the axis from R + I
+        if not near[i]:
+            continue
+        B = (R[i] + np.eye(3)) / 2
+        axis = B[np.argmax(np.diag(B))]
+        axis = axis / np.linalg.norm(axis)
+        out[i] = a[i] * axis * (1 if axis @ w[i] >= 0 else -1)
+    return out
+
+
+def _exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices of rotation vectors (..., 3) -> (..., 3, 3) (Rodrigues)."""
+    w = np.asarray(w, float)
+    a = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    small = a < 1e-9
+    safe = np.where(small, 1.0, a)
+    s1 = np.where(small, 1.0, np.sin(safe) / safe)
+    s2 = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + s1 * K + s2 * (K @ K)
+
+
+def world_covariance(cov: np.ndarray, pose: Pose) -> np.ndarray:
+    """The solver's (w, v) covariance (left perturbation of T_CW in the camera frame) as
+    (theta, c) in W: R_WC' = exp(theta) R_WC and c' = c + dc, with theta = -R^T w and
+    dc = -R^T v to first order."""
+    B = np.zeros((6, 6))
+    B[:3, :3] = B[3:, 3:] = -pose.R.T
+    return B @ cov @ B.T
+
+
+@dataclass
+class _M:
+    """A measurement prepared once: in W, with its information matrix."""
+
+    R_wc: np.ndarray
+    center: np.ndarray
+    info: np.ndarray
+    shared: np.ndarray  # the model's error in W: added back after smoothing
+    anchor: int
+    max_pos: float
+    max_rot: float
+
+
+def prepare(m: Measurement | None) -> _M | None:
+    if m is None:
+        return None
+    C = world_covariance(m.cov, m.pose)
+    if not np.all(np.isfinite(C)):
+        return None
+    try:
+        info = np.linalg.inv(C + 1e-14 * np.eye(6))
+    except np.linalg.LinAlgError:
+        return None
+    shared = world_covariance(m.cov_shared, m.pose)
+    return _M(m.pose.R.T, m.pose.center, info, shared, m.anchor, m.max_sigma_pos_m,
+              m.max_sigma_rot_deg)  # fmt: skip
+
+
+_A = np.hstack([np.eye(6), -2 * np.eye(6), np.eye(6)])  # second difference of 3 frames
+_BAND = 17  # H couples frames two apart: 6 x 2 + 5 sub-diagonals
+
+
+def _banded(H: np.ndarray) -> np.ndarray:
+    n = len(H)
+    ab = np.zeros((_BAND + 1, n))
+    for d in range(min(_BAND + 1, n)):
+        ab[d, : n - d] = np.diagonal(H, -d)
+    return ab
+
+
+def _step(idx, meas, R, c, info, prior, drop):
+    """Gauss-Newton step of the window: corrections (n, 6) and the banded information."""
+    n = len(R)
+    H = np.zeros((6 * n, 6 * n))
+    g = np.zeros(6 * n)
+    use = [j for j in idx if j not in drop]
+    z = np.concatenate(
+        [_log(np.stack([meas[j].R_wc for j in use]) @ R[use].transpose(0, 2, 1)),
+         np.stack([meas[j].center for j in use]) - c[use]], axis=1,
+    )  # fmt: skip
+    for row, j in enumerate(use):
+        s = slice(6 * j, 6 * j + 6)
+        H[s, s] += info[j]
+        g[s] += info[j] @ z[row]
+    if n >= 3:
+        inc = _log(R[1:] @ R[:-1].transpose(0, 2, 1))  # (n-1, 3)
+        a = np.concatenate([inc[1:] - inc[:-1], c[2:] - 2 * c[1:-1] + c[:-2]], axis=1)
+        P = _A.T @ prior @ _A
+        ga = -(a @ prior) @ _A  # (n-2, 18)
+        for k in range(1, n - 1):
+            s = slice(6 * (k - 1), 6 * (k + 2))
+            H[s, s] += P
+            g[s] += ga[k - 1]
+    ab = _banded(H)
+    try:
+        d = scipy.linalg.solveh_banded(ab, g, lower=True)
+    except (np.linalg.LinAlgError, ValueError):
+        return None, None
+    return d.reshape(n, 6), ab
+
+
+def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings):
+    """MAP pose and 6x6 (theta, c) covariance in W of window[k], or None when it cannot be
+    smoothed (its pose is an outlier, or the window has no other pose). `window` holds one
+    entry per frame (None: no pose) and no gap longer than `s.max_gap`."""
+    idx = [j for j, m in enumerate(window) if m is not None]
+    if window[k] is None or len(idx) < 2:
+        return None
+    runs: dict[int, int] = {}
+    for j in idx:
+        runs[window[j].anchor] = runs.get(window[j].anchor, 0) + 1
+    meas = {j: window[j] for j in idx}
+    info = {j: window[j].info / runs[window[j].anchor] for j in idx}
+    # reference: the poses, frames without one interpolated between their neighbours
+    n = len(window)
+    R0 = np.zeros((n, 3, 3))
+    c0 = np.zeros((n, 3))
+    R0[idx] = np.stack([meas[j].R_wc for j in idx])
+    c0[idx] = np.stack([meas[j].center for j in idx])
+    for j in set(range(n)) - set(idx):  # the window starts and ends with a pose
+        after = idx[int(np.searchsorted(idx, j))]
+        before = idx[int(np.searchsorted(idx, j)) - 1]
+        f = (j - before) / (after - before)
+        mb, ma = meas[before], meas[after]
+        R0[j] = _exp(f * _log(ma.R_wc @ mb.R_wc.T)) @ mb.R_wc
+        c0[j] = (1 - f) * mb.center + f * ma.center
+    q_rot = np.radians(s.ang_accel_deg_s2) ** 2 * dt**3
+    q_pos = s.accel_m_s2**2 * dt**3
+    prior = np.diag([1 / q_rot] * 3 + [1 / q_pos] * 3)
+    drop: set[int] = set()
+    while True:  # drop outliers, the worst first, until every pose fits
+        R, c = R0.copy(), c0.copy()
+        for _it in range(2):  # relinearise once: the corrections are small
+            d, ab = _step(idx, meas, R, c, info, prior, drop)
+            if d is None:
+                return None
+            R = _exp(d[:, :3]) @ R
+            c = c + d[:, 3:]
+        use = [j for j in idx if j not in drop]
+        r = np.concatenate(
+            [_log(np.stack([meas[j].R_wc for j in use]) @ R[use].transpose(0, 2, 1)),
+             np.stack([meas[j].center for j in use]) - c[use]], axis=1,
+        )  # fmt: skip
+        m2 = np.einsum("ni,nij,nj->n", r, np.stack([meas[j].info for j in use]), r)
+        worst = int(np.argmax(m2))
+        if m2[worst] <= s.outlier_chi2:
+            break
+        if use[worst] == k or len(use) <= 2:
+            return None
+        drop.add(use[worst])
+    E = np.zeros((6 * n, 6))
+    E[6 * k : 6 * k + 6] = np.eye(6)
+    try:
+        cov = scipy.linalg.solveh_banded(ab, E, lower=True)[6 * k : 6 * k + 6]
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    R_cw = R[k].T
+    return Pose(R_cw, -R_cw @ c[k]), (cov + cov.T) / 2
+
+
+class Smoother:
+    """Feed records in order with `push`; each comes back `s.lag` frames later, its pose
+    smoothed; `flush` returns the frames still held (at the end, or on an interrupt: the
+    frames the tracker finished are never lost)."""
+
+    def __init__(self, s: SmoothSettings):
+        self.s = s
+        self.held: deque[FrameRecord] = deque()  # lag past, the next output, lag future
+        self.prepared: deque[_M | None] = deque()  # their measurements, in W
+        self.out_at = 0  # index in `held` of the next frame to give back
+
+    def push(self, rec: FrameRecord) -> list[FrameRecord]:
+        self.held.append(rec)
+        self.prepared.append(prepare(rec.measurement))
+        return self._ready(self.s.lag)
+
+    def flush(self) -> list[FrameRecord]:
+        return self._ready(0)
+
+    def _ready(self, future: int) -> list[FrameRecord]:
+        """The held frames with `future` frames after them, smoothed. They count as given
+        back only once all are computed: an interrupt meanwhile loses none (`flush`)."""
+        n = max(len(self.held) - future - self.out_at, 0)
+        done = [self._smoothed(k) for k in range(self.out_at, self.out_at + n)]
+        self.out_at += n
+        self._trim()
+        return done
+
+    def _trim(self) -> None:
+        while self.out_at > self.s.lag:
+            self.held.popleft()
+            self.prepared.popleft()
+            self.out_at -= 1
+
+    def _smoothed(self, k: int) -> FrameRecord:
+        t0 = time.perf_counter()
+        rec = self._smooth(k)
+        rec.ms = round(rec.ms + (time.perf_counter() - t0) * 1000, 2)
+        return rec
+
+    def _smooth(self, k: int) -> FrameRecord:
+        s, rec, m = self.s, self.held[k], self.prepared[k]
+        if m is None or s.lag <= 0:
+            return rec
+        # the window: the stretch around k without a gap longer than max_gap
+        lo, hi, gap = k, k, 0
+        for j in range(k - 1, max(k - s.lag, 0) - 1, -1):  # at most lag frames either way
+            gap = 0 if self.prepared[j] is not None else gap + 1
+            if gap > s.max_gap:
+                break
+            if gap == 0:
+                lo = j
+        gap = 0
+        for j in range(k + 1, min(k + s.lag + 1, len(self.held))):
+            gap = 0 if self.prepared[j] is not None else gap + 1
+            if gap > s.max_gap:
+                break
+            if gap == 0:
+                hi = j
+        window = [self.prepared[j] for j in range(lo, hi + 1)]
+        steps = np.diff([self.held[j].time_s for j in range(lo, hi + 1)])
+        dt = float(np.median(steps)) if len(steps) and np.all(np.isfinite(steps)) else 0.0
+        dt = dt if dt > 0 else 1.0 / s.fps
+        # 4 digits: stamps that jitter by microseconds (bags) do not change the poses
+        got = smooth_window(window, k - lo, float(f"{dt:.4g}"), s)
+        if got is None:  # nothing to smooth with, or the frame does not fit its
+            return rec  # neighbours (a manoeuvre the prior does not expect): as tracked
+        pose, cov = got
+        cov = cov + m.shared
+        # with this frame's own evidence in it, the smoothed pose is not worse than the
+        # tracked one; a larger sigma only comes from counting a flowed run as one
+        # measurement, which is cautious
+        rec.sigma_pos_m = min(rec.sigma_pos_m, float(np.sqrt(max(np.trace(cov[3:, 3:]), 0))))
+        rec.sigma_rot_deg = min(
+            rec.sigma_rot_deg, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0))))
+        )
+        if rec.sigma_pos_m <= m.max_pos and rec.sigma_rot_deg <= m.max_rot:
+            rec.status, rec.pose = Status.OK, pose
+        else:
+            rec.status, rec.pose = Status.UNCERTAIN, None
+        return rec
+
+
+def run(records: Iterable[FrameRecord], s: SmoothSettings) -> Iterator[FrameRecord]:
+    """The records in order, each `s.lag` frames late with its pose smoothed (only frames
+    with a pose, ok or uncertain, change)."""
+    sm = Smoother(s)
+    for rec in records:
+        yield from sm.push(rec)
+    yield from sm.flush()

@@ -1,0 +1,168 @@
+"""The fixed-lag smoother against known truth: it must shrink the error where frames are
+independent, stay honest where they are not, ignore a pose that does not fit, never smooth
+across a gap, and give every frame back once, in order."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from mirage_cli.pose import Pose, look_at
+from mirage_cli.smooth import Smoother, SmoothSettings, _exp, _log, run, world_covariance
+from mirage_cli.trajectory import FrameRecord, Measurement, Status
+
+FPS = 30.0
+SIG_W, SIG_V = np.radians(0.3), 0.02  # per-frame 1-sigma: rotation (rad), translation (m)
+
+
+def _orbit(n, radius=4.0, turns_per_s=0.15, start=0.0):
+    """Camera poses on a circle looking at the origin, at constant speed."""
+    out = []
+    for i in range(n):
+        a = start + 2 * np.pi * turns_per_s * i / FPS
+        out.append(look_at([radius * np.cos(a), radius * np.sin(a), 0.6], [0, 0, 0.3]))
+    return out
+
+
+def _measure(truth, rng, anchors=None, scale=1.0, repeat_error=False):
+    """Records whose poses carry the noise their covariance states (left perturbation
+    exp([w, v]) T_CW, as the solver's); `anchors[i]`: the detection frame i flows from."""
+    cov = np.diag([SIG_W**2] * 3 + [SIG_V**2] * 3) * scale**2
+    recs, e = [], None
+    for i, T in enumerate(truth):
+        if e is None or not repeat_error or anchors[i] == i:
+            e = rng.multivariate_normal(np.zeros(6), cov)
+        R = cv2.Rodrigues(e[:3])[0]
+        noisy = Pose(R @ T.R, R @ T.t + e[3:])
+        m = Measurement(noisy, cov, np.zeros((6, 6)), anchors[i] if anchors else i)
+        recs.append(
+            FrameRecord(
+                Status.OK, noisy, frame=i, time_s=i / FPS,
+                sigma_pos_m=float(np.sqrt(3) * SIG_V * scale),
+                sigma_rot_deg=float(np.degrees(np.sqrt(3) * SIG_W * scale)), measurement=m,
+            )
+        )  # fmt: skip
+    return recs
+
+
+def _errors(recs, truth):
+    pe = np.array([r.pose.distance_to(t) for r, t in zip(recs, truth, strict=True)])
+    re = np.array([r.pose.angle_to(t) for r, t in zip(recs, truth, strict=True)])
+    return pe, re
+
+
+def test_rotation_log_and_exp_invert_each_other_near_zero_and_pi():
+    rng = np.random.default_rng(1)
+    w = np.vstack([rng.normal(size=(20, 3)), [[1e-9, 0, 0], [np.pi - 1e-7, 0, 0], [0, 0, 0]]])
+    R = np.array([cv2.Rodrigues(v)[0] for v in w])
+    assert np.allclose(_exp(w), R, atol=1e-9)
+    assert np.allclose(_exp(_log(R)), R, atol=1e-7)
+    # the solver's camera-frame covariance in W keeps its traces (sigmas are unchanged)
+    C = np.diag([1.0, 2, 3, 4, 5, 6])
+    Cw = world_covariance(C, look_at([2, 1, 1], [0, 0, 0]))
+    assert np.isclose(np.trace(Cw[:3, :3]), 6) and np.isclose(np.trace(Cw[3:, 3:]), 15)
+
+
+def test_independent_frames_get_more_accurate_and_stay_honest():
+    truth = _orbit(150)
+    recs = _measure(truth, np.random.default_rng(2))
+    raw_pe, raw_re = _errors(recs, truth)
+    out = list(run(recs, SmoothSettings()))
+    assert [r.frame for r in out] == list(range(150))
+    assert all(r.status == Status.OK for r in out)
+    pe, re = _errors(out, truth)
+    assert np.median(pe) < 0.7 * np.median(raw_pe), (np.median(pe), np.median(raw_pe))
+    assert np.median(re) < 0.7 * np.median(raw_re), (np.median(re), np.median(raw_re))
+    sp = np.array([r.sigma_pos_m for r in out])
+    sr = np.radians([r.sigma_rot_deg for r in out])
+    honesty_pos = np.sqrt(np.mean(pe**2)) / np.sqrt(np.mean(sp**2))
+    honesty_rot = np.sqrt(np.mean(np.radians(re) ** 2)) / np.sqrt(np.mean(sr**2))
+    assert 0.6 < honesty_pos < 1.3 and 0.6 < honesty_rot < 1.3, (honesty_pos, honesty_rot)
+
+
+def test_a_flowed_run_counts_as_one_measurement():
+    """Five frames flowed from one detection repeat its error: smoothing them as five
+    independent poses would claim sqrt(5) too small a sigma. Counted as one, the error
+    stays within the stated sigma."""
+    truth = _orbit(150)
+    anchors = [i - i % 5 for i in range(150)]
+    recs = _measure(truth, np.random.default_rng(3), anchors, repeat_error=True)
+    out = list(run(recs, SmoothSettings()))
+    pe, _ = _errors(out, truth)
+    sp = np.array([r.sigma_pos_m for r in out])
+    assert np.sqrt(np.mean(pe**2)) / np.sqrt(np.mean(sp**2)) < 1.3
+
+
+def test_a_pose_that_does_not_fit_neither_moves_its_neighbours_nor_is_changed():
+    truth = _orbit(61)
+    recs = _measure(truth, np.random.default_rng(4))
+    bad = recs[30]
+    wrong = Pose(bad.pose.R, bad.pose.t + np.array([0.8, 0.0, 0.0]))  # 0.8 m off
+    bad.pose = wrong
+    bad.measurement = Measurement(wrong, bad.measurement.cov, np.zeros((6, 6)), 30)
+    out = list(run(recs, SmoothSettings()))
+    assert out[30].pose is wrong  # as tracked: the smoother does not decide it
+    pe, _ = _errors(out[:30] + out[31:], truth[:30] + truth[31:])
+    assert pe.max() < 0.05, pe.max()
+
+
+def test_nothing_is_smoothed_across_a_gap():
+    """Two stretches 10 frames apart (more than max_gap without a pose), the second one
+    displaced by 1 m: each is smoothed on its own, nothing pulls across the gap."""
+    s = SmoothSettings(max_gap=3)
+    a, b = _orbit(20), _orbit(20, radius=5.0, start=1.0)
+    rng = np.random.default_rng(5)
+    recs = _measure(a + b, rng)
+    for i, r in enumerate(recs[20:], start=20):
+        r.frame, r.time_s = i + 10, (i + 10) / FPS
+    gap = [FrameRecord(Status.LOST, frame=20 + j, time_s=(20 + j) / FPS) for j in range(10)]
+    stream = recs[:20] + gap + recs[20:]
+    alone = [r.pose for r in run([_copy(r) for r in recs[:20]], s)]
+    out = list(run(stream, s))
+    assert [r.frame for r in out] == list(range(50))
+    assert all(r.status == Status.LOST for r in out[20:30])
+    for r, p in zip(out[:20], alone, strict=True):
+        assert np.allclose(r.pose.t, p.t, atol=1e-9)
+    pe, _ = _errors(out[30:], b)
+    assert pe.max() < 0.05
+
+
+def _copy(r: FrameRecord) -> FrameRecord:
+    return FrameRecord(
+        r.status, r.pose, frame=r.frame, time_s=r.time_s, sigma_pos_m=r.sigma_pos_m,
+        sigma_rot_deg=r.sigma_rot_deg, measurement=r.measurement,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("lag", [0, 1, 7])
+def test_every_frame_comes_back_once_in_order_lag_frames_late(lag):
+    truth = _orbit(25)
+    recs = _measure(truth, np.random.default_rng(6))
+    recs[12] = FrameRecord(Status.LOST, frame=12, time_s=12 / FPS)
+    sm = Smoother(SmoothSettings(lag=lag))
+    got = []
+    for i, r in enumerate(recs):
+        out = sm.push(r)
+        assert len(out) == (1 if i >= lag else 0)
+        got += out
+    got += sm.flush()
+    assert [r.frame for r in got] == list(range(25))
+    assert got[12].status == Status.LOST and got[12].pose is None
+    if lag == 0:  # unsmoothed: the tracker's poses
+        assert all(g.pose is r.pose for g, r in zip(got, recs, strict=True) if r.pose)
+
+
+def test_an_uncertain_pose_becomes_ok_when_its_neighbours_pin_it():
+    """A vague pose (sigma above its gate) between good ones is smoothed below the gate."""
+    truth = _orbit(41)
+    recs = _measure(truth, np.random.default_rng(7))
+    vague = _measure(truth[20:21], np.random.default_rng(8), scale=3.0)[0]
+    limit = 0.5 * vague.sigma_pos_m
+    m = vague.measurement
+    vague.measurement = Measurement(m.pose, m.cov, m.cov_shared, 20, max_sigma_pos_m=limit)
+    vague.status, vague.pose, vague.frame, vague.time_s = Status.UNCERTAIN, None, 20, 20 / FPS
+    recs[20] = vague
+    out = list(run(recs, SmoothSettings()))
+    assert out[20].status == Status.OK and out[20].sigma_pos_m <= limit
+    assert out[20].pose.distance_to(truth[20]) < 3 * out[20].sigma_pos_m
