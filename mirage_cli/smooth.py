@@ -18,7 +18,10 @@ What keeps it honest:
 - A pose that does not fit the others (Mahalanobis distance beyond `outlier_chi2`) is
   dropped from the window; if it is the output frame's own, that frame is `uncertain`.
 - More than `max_gap` frames without a pose split the trajectory: nothing is smoothed
-  across a look-away or a lost stretch.
+  across a look-away or a lost stretch, and a frame with fewer than `min_side` poses
+  before or after it in its stretch (its start and end) stays as tracked: there the
+  prior extrapolates, and correlated errors of the first poses after a re-acquisition
+  would swing it.
 The smoothed pose is then gated like a tracked one (the measurement's own limits).
 """
 
@@ -42,6 +45,7 @@ class SmoothSettings:
     accel_m_s2: float = 5.0  # white-noise acceleration of the camera centre (1 sigma)
     ang_accel_deg_s2: float = 60.0  # ... and of its rotation
     max_gap: int = 3  # more frames in a row without a pose split the trajectory
+    min_side: int = 3  # fewer poses than this before or after a frame: it stays as tracked
     outlier_chi2: float = 22.46  # chi-square, 6 dof, p = 0.999
     fps: float = 30.0  # frame rate when the records carry no times
 
@@ -280,6 +284,9 @@ class Smoother:
             if gap == 0:
                 hi = j
         window = [self.prepared[j] for j in range(lo, hi + 1)]
+        before = sum(w is not None for w in window[: k - lo])
+        if min(before, sum(w is not None for w in window) - 1 - before) < s.min_side:
+            return rec  # the end of a stretch: a smoother extrapolates there, keep it
         steps = np.diff([self.held[j].time_s for j in range(lo, hi + 1)])
         dt = float(np.median(steps)) if len(steps) and np.all(np.isfinite(steps)) else 0.0
         dt = dt if dt > 0 else 1.0 / s.fps
