@@ -53,6 +53,8 @@ class TrackSettings:
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
     local_keyframes: int = 4  # keyframes near the previous pose to match against
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
+    relocalise_every: int = 3  # while lost: the whole frame every N frames, a half-size
+    # probe between (1: the whole frame every time)
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
     max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
@@ -303,6 +305,13 @@ class Tracker:
                 # view and costs a full-frame detection more (4 m orbit: 200 ms a frame)
                 if res.ok or res.status == Status.UNCERTAIN:
                     return res
+        if self.lost_run % self.s.relocalise_every:
+            # lost for a while: the whole frame is searched every `relocalise_every` frames;
+            # between, a half-size probe (a quarter of the pixels) goes on to the whole
+            # frame only when it finds the landmark (a far one waits for the next search)
+            probe = self._probe(gray)
+            if probe.status == Status.LOST:
+                return probe
         kps, desc = detect(gray, self.detector)
         if desc is None or len(kps) < self.s.min_inliers:
             return FrameRecord(Status.LOST, mode="detect")
@@ -311,6 +320,13 @@ class Tracker:
             if res.ok or res.status == Status.UNCERTAIN:  # as above
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
+
+    def _probe(self, gray: np.ndarray) -> FrameRecord:
+        small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+        kps, desc = detect(small, self.detector)
+        if desc is None or len(kps) < self.s.min_inliers:
+            return FrameRecord(Status.LOST, mode="relocalise")
+        return self._relocalise(kps * np.float32(2) + np.float32(0.5), desc)
 
     def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
         """Pixel box (x0, y0, x1, y1) around the model's points as the predicted pose sees

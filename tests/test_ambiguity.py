@@ -212,3 +212,33 @@ def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, m
         assert shapes[0] != gray.shape  # the predicted box first
         assert (len(shapes), len(reloc)) == (want_shapes, want_reloc), (guided, shapes)
         assert res.status == (guided if guided == Status.UNCERTAIN else Status.LOST)
+
+
+def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeypatch):
+    """Lost for a while (a look-away): a half-size probe between full searches, which
+    goes on to the whole frame only when it finds the landmark."""
+    from mirage_cli import track
+    from mirage_cli.trajectory import FrameRecord, Status
+
+    gray = np.zeros(model.camera.size[::-1], np.uint8)
+    feats = (np.full((50, 2), 100, np.float32), np.zeros((50, 128), np.float32))
+    for lost_run, probe_finds, want in (
+        (1, Status.LOST, ["half"]),
+        (2, Status.LOST, ["half"]),
+        (3, Status.LOST, ["full"]),
+        (0, Status.LOST, ["full"]),
+        (1, Status.UNCERTAIN, ["half", "full"]),
+    ):
+        sizes, relocs = [], iter([probe_finds, Status.LOST])
+        monkeypatch.setattr(
+            track, "detect",
+            lambda img, det, s=sizes: s.append("full" if img.shape == gray.shape else "half")
+            or feats,
+        )  # fmt: skip
+        monkeypatch.setattr(
+            Tracker, "_relocalise", lambda *a, r=relocs: FrameRecord(next(r), mode="relocalise")
+        )
+        tr = Tracker(model, model.camera, TrackSettings())
+        tr.lost_run = lost_run  # no prediction: relocalisation only
+        tr._detect(gray)
+        assert sizes == want, (lost_run, probe_finds, sizes)
