@@ -170,3 +170,28 @@ def test_an_uncertain_pose_becomes_ok_when_its_neighbours_pin_it():
     out = list(run(recs, SmoothSettings()))
     assert out[20].status == Status.OK and out[20].sigma_pos_m <= limit
     assert out[20].pose.distance_to(truth[20]) < 3 * out[20].sigma_pos_m
+
+
+def test_an_interrupt_writes_the_frames_the_smoother_held(sample_model, tmp_path, monkeypatch):
+    """Ctrl-C after 30 tracked frames: the 15 the smoother still held are written too
+    (smoothed with what came), so the CSV has every tracked frame; exit 130."""
+    from conftest import SAMPLE, run_here
+
+    from mirage_cli import track
+    from mirage_cli.trajectory import read_pose_csv
+
+    real_run = track.run
+
+    def thirty_then_interrupt(frames, tracker, **kw):
+        for i, rec in enumerate(real_run(frames, tracker, **kw)):
+            yield rec
+            if i == 29:
+                raise KeyboardInterrupt
+
+    monkeypatch.setattr(track, "run", thirty_then_interrupt)
+    out = tmp_path / "p.csv"
+    r = run_here("track", SAMPLE / "orbit.mp4", "--model", sample_model, "-o", out)
+    assert r.returncode == 130 and "kept 30 frames in" in r.stderr, r.stderr
+    rows = read_pose_csv(out)
+    assert rows["frame"].astype(int).tolist() == list(range(30))
+    assert (rows["status"] == "ok").all()
