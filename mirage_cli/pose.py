@@ -42,6 +42,42 @@ def rotvec(R: np.ndarray) -> np.ndarray:
     return v / s * angle
 
 
+def rotvecs(R: np.ndarray) -> np.ndarray:
+    """`rotvec` over a stack of rotation matrices (..., 3, 3) -> (..., 3), stable near 0 and
+    pi: the smoother takes the logs of a whole window at once."""
+    R = np.asarray(R, float)
+    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
+    a = np.arccos(c)
+    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
+                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)  # fmt: skip
+    sa = np.sin(a)
+    f = np.where(a < 1e-6, 0.5, a / (2 * np.where(sa > 1e-12, sa, 1.0)))
+    out = w * f[..., None]
+    near = np.pi - a < 1e-4
+    for i in np.ndindex(a.shape) if near.any() else ():  # the axis from R + I
+        if not near[i]:
+            continue
+        B = (R[i] + np.eye(3)) / 2
+        axis = B[np.argmax(np.diag(B))]
+        axis = axis / np.linalg.norm(axis)
+        out[i] = a[i] * axis * (1 if axis @ w[i] >= 0 else -1)
+    return out
+
+
+def rodrigues_many(w: np.ndarray) -> np.ndarray:
+    """`rodrigues` over a stack of rotation vectors (..., 3) -> (..., 3, 3)."""
+    w = np.asarray(w, float)
+    a = np.linalg.norm(w, axis=-1)[..., None, None]
+    K = np.zeros(w.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    small = a < 1e-9
+    safe = np.where(small, 1.0, a)
+    s1 = np.where(small, 1.0, np.sin(safe) / safe)
+    s2 = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
+    return np.eye(3) + s1 * K + s2 * (K @ K)
+
+
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix (Shepperd's method)."""
     R = np.asarray(R, dtype=float)

@@ -16,7 +16,9 @@ What keeps it honest:
 - The model's own error is shared by every frame that sees the same points; it is not
   averaged down but added back to the smoothed covariance.
 - A pose that does not fit the others (Mahalanobis distance beyond `outlier_chi2`) is
-  dropped from the window; if it is the output frame's own, that frame is `uncertain`.
+  dropped from the window; if it is the output frame's own, that frame keeps its tracked
+  values (a manoeuvre the prior does not expect, or a wrong pose the tracker's gate let
+  through: the smoother does not decide which).
 - More than `max_gap` frames without a pose split the trajectory: nothing is smoothed
   across a look-away or a lost stretch, and a frame with fewer than `min_side` poses
   before or after it in its stretch (its start and end) stays as tracked: there the
@@ -35,7 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from .pose import Pose
+from .pose import Pose, rodrigues_many, rotvecs
+from .solver import sigmas
 from .trajectory import FrameRecord, Measurement, Status
 
 
@@ -48,41 +51,6 @@ class SmoothSettings:
     min_side: int = 3  # fewer poses than this before or after a frame: it stays as tracked
     outlier_chi2: float = 22.46  # chi-square, 6 dof, p = 0.999
     fps: float = 30.0  # frame rate when the records carry no times
-
-
-def _log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors of rotation matrices (..., 3, 3) -> (..., 3), stable near 0 and pi."""
-    R = np.asarray(R, float)
-    c = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0)
-    a = np.arccos(c)
-    w = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0],
-                  R[..., 1, 0] - R[..., 0, 1]], axis=-1)  # fmt: skip
-    sa = np.sin(a)
-    f = np.where(a < 1e-6, 0.5, a / (2 * np.where(sa > 1e-12, sa, 1.0)))
-    out = w * f[..., None]
-    near = np.pi - a < 1e-4
-    for i in np.ndindex(a.shape) if near.any() else ():  # the axis from R + I
-        if not near[i]:
-            continue
-        B = (R[i] + np.eye(3)) / 2
-        axis = B[np.argmax(np.diag(B))]
-        axis = axis / np.linalg.norm(axis)
-        out[i] = a[i] * axis * (1 if axis @ w[i] >= 0 else -1)
-    return out
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices of rotation vectors (..., 3) -> (..., 3, 3) (Rodrigues)."""
-    w = np.asarray(w, float)
-    a = np.linalg.norm(w, axis=-1)[..., None, None]
-    K = np.zeros(w.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    small = a < 1e-9
-    safe = np.where(small, 1.0, a)
-    s1 = np.where(small, 1.0, np.sin(safe) / safe)
-    s2 = np.where(small, 0.5, (1 - np.cos(safe)) / safe**2)
-    return np.eye(3) + s1 * K + s2 * (K @ K)
 
 
 def world_covariance(cov: np.ndarray, pose: Pose) -> np.ndarray:
@@ -136,22 +104,25 @@ def _banded(H: np.ndarray) -> np.ndarray:
     return ab
 
 
+def _residuals(meas, use, R, c) -> np.ndarray:
+    """(theta, c) of the measurements `use` against the window's poses R, c: (len(use), 6)."""
+    dR = np.stack([meas[j].R_wc for j in use]) @ R[use].transpose(0, 2, 1)
+    return np.concatenate([rotvecs(dR), np.stack([meas[j].center for j in use]) - c[use]], axis=1)
+
+
 def _step(idx, meas, R, c, info, prior, drop):
     """Gauss-Newton step of the window: corrections (n, 6) and the banded information."""
     n = len(R)
     H = np.zeros((6 * n, 6 * n))
     g = np.zeros(6 * n)
     use = [j for j in idx if j not in drop]
-    z = np.concatenate(
-        [_log(np.stack([meas[j].R_wc for j in use]) @ R[use].transpose(0, 2, 1)),
-         np.stack([meas[j].center for j in use]) - c[use]], axis=1,
-    )  # fmt: skip
+    z = _residuals(meas, use, R, c)
     H4, g2 = H.reshape(n, 6, n, 6), g.reshape(n, 6)  # views: block (i, j) is H4[i, :, j]
     W = np.stack([info[j] for j in use])
     H4[use, :, use, :] += W
     g2[use] += np.einsum("nij,nj->ni", W, z)
     if n >= 3:
-        inc = _log(R[1:] @ R[:-1].transpose(0, 2, 1))  # (n-1, 3)
+        inc = rotvecs(R[1:] @ R[:-1].transpose(0, 2, 1))  # (n-1, 3)
         a = np.concatenate([inc[1:] - inc[:-1], c[2:] - 2 * c[1:-1] + c[:-2]], axis=1)
         P = (_A.T @ prior @ _A).reshape(3, 6, 3, 6)
         ga = (-(a @ prior) @ _A).reshape(-1, 3, 6)  # (n-2, 3 frames, 6)
@@ -191,7 +162,7 @@ def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings)
         before = idx[int(np.searchsorted(idx, j)) - 1]
         f = (j - before) / (after - before)
         mb, ma = meas[before], meas[after]
-        R0[j] = _exp(f * _log(ma.R_wc @ mb.R_wc.T)) @ mb.R_wc
+        R0[j] = rodrigues_many(f * rotvecs(ma.R_wc @ mb.R_wc.T)) @ mb.R_wc
         c0[j] = (1 - f) * mb.center + f * ma.center
     q_rot = np.radians(s.ang_accel_deg_s2) ** 2 * dt**3
     q_pos = s.accel_m_s2**2 * dt**3
@@ -203,13 +174,10 @@ def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings)
             d, ab = _step(idx, meas, R, c, info, prior, drop)
             if d is None:
                 return None
-            R = _exp(d[:, :3]) @ R
+            R = rodrigues_many(d[:, :3]) @ R
             c = c + d[:, 3:]
         use = [j for j in idx if j not in drop]
-        r = np.concatenate(
-            [_log(np.stack([meas[j].R_wc for j in use]) @ R[use].transpose(0, 2, 1)),
-             np.stack([meas[j].center for j in use]) - c[use]], axis=1,
-        )  # fmt: skip
+        r = _residuals(meas, use, R, c)
         m2 = np.einsum("ni,nij,nj->n", r, np.stack([meas[j].info for j in use]), r)
         worst = int(np.argmax(m2))
         if m2[worst] <= s.outlier_chi2:
@@ -302,10 +270,8 @@ class Smoother:
         # with this frame's own evidence in it, the smoothed pose is not worse than the
         # tracked one; a larger sigma only comes from counting a flowed run as one
         # measurement, which is cautious
-        rec.sigma_pos_m = min(rec.sigma_pos_m, float(np.sqrt(max(np.trace(cov[3:, 3:]), 0))))
-        rec.sigma_rot_deg = min(
-            rec.sigma_rot_deg, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0))))
-        )
+        pos, rot = sigmas(cov)
+        rec.sigma_pos_m, rec.sigma_rot_deg = min(rec.sigma_pos_m, pos), min(rec.sigma_rot_deg, rot)
         if rec.sigma_pos_m <= m.max_pos and rec.sigma_rot_deg <= m.max_rot:
             rec.status, rec.pose = Status.OK, pose
         else:

@@ -84,6 +84,13 @@ class RefineOptions:
     max_rmse_px: float | None = None
 
 
+def sigmas(cov: np.ndarray) -> tuple[float, float]:
+    """RMS position (m) and rotation (deg) error a (w, v) or (theta, c) covariance predicts:
+    sqrt(trace) of each 3x3 block (rotation-invariant, so either frame gives the same)."""
+    pos = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
+    return pos, float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+
+
 @dataclass
 class PoseEstimate:
     """Result of `solve_pose`.  `pose` is None whenever `success` is False.
@@ -107,11 +114,11 @@ class PoseEstimate:
 
     @property
     def sigma_pos_m(self) -> float:
-        return float(np.sqrt(max(np.trace(self.covariance[3:, 3:]), 0.0)))
+        return sigmas(self.covariance)[0]
 
     @property
     def sigma_rot_deg(self) -> float:
-        return float(np.degrees(np.sqrt(max(np.trace(self.covariance[:3, :3]), 0.0))))
+        return sigmas(self.covariance)[1]
 
     @property
     def center_covariance(self) -> np.ndarray:

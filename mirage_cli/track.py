@@ -25,7 +25,14 @@ from .frames import Frame
 from .model import LandmarkModel, ground_points, point_twins
 from .pose import Pose
 from .signals import through_compiled_code
-from .solver import PoseEstimate, RansacOptions, RefineOptions, sandwich_covariance, solve_pose
+from .solver import (
+    PoseEstimate,
+    RansacOptions,
+    RefineOptions,
+    sandwich_covariance,
+    sigmas,
+    solve_pose,
+)
 from .trajectory import FrameRecord, Measurement, Status
 
 
@@ -273,7 +280,7 @@ class Tracker:
             # points that slid along an edge bend the pose while the residuals stay small;
             # a smooth path predicts the pose well, so a flowed pose far from the
             # prediction (in the sigmas of its residuals) is checked by a detection
-            sigma_res = float(np.sqrt(max(np.trace(res.measurement.cov[3:, 3:]), 0.0)))
+            sigma_res = sigmas(res.measurement.cov)[0]
             dev = est.pose.distance_to(pred) / max(sigma_res, 1e-9)
             if dev > self.s.flow_max_dev_sigma:
                 return None
@@ -474,9 +481,7 @@ class Tracker:
         if not est.success:
             return res
         cov_res, cov_model = self._covariances(est, ninl, points)
-        cov = cov_res + cov_model
-        res.sigma_pos_m = float(np.sqrt(max(np.trace(cov[3:, 3:]), 0.0)))
-        res.sigma_rot_deg = float(np.degrees(np.sqrt(max(np.trace(cov[:3, :3]), 0.0))))
+        res.sigma_pos_m, res.sigma_rot_deg = sigmas(cov_res + cov_model)
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique
         need = self.s.min_inliers if mode == "relocalise" else self.s.min_track_inliers

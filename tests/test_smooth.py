@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from mirage_cli.pose import Pose, look_at
-from mirage_cli.smooth import Smoother, SmoothSettings, _exp, _log, run, world_covariance
+from mirage_cli.pose import Pose, look_at, rodrigues, rodrigues_many, rotvec, rotvecs
+from mirage_cli.smooth import Smoother, SmoothSettings, run, world_covariance
 from mirage_cli.trajectory import FrameRecord, Measurement, Status
 
 FPS = 30.0
@@ -56,8 +56,11 @@ def test_rotation_log_and_exp_invert_each_other_near_zero_and_pi():
     rng = np.random.default_rng(1)
     w = np.vstack([rng.normal(size=(20, 3)), [[1e-9, 0, 0], [np.pi - 1e-7, 0, 0], [0, 0, 0]]])
     R = np.array([cv2.Rodrigues(v)[0] for v in w])
-    assert np.allclose(_exp(w), R, atol=1e-9)
-    assert np.allclose(_exp(_log(R)), R, atol=1e-7)
+    assert np.allclose(rodrigues_many(w), R, atol=1e-9)
+    assert np.allclose(rodrigues_many(rotvecs(R)), R, atol=1e-7)
+    # the stacks agree with the one-matrix versions
+    assert np.allclose(rodrigues_many(w), [rodrigues(v) for v in w], atol=1e-12)
+    assert np.allclose(rodrigues_many(rotvecs(R)), [rodrigues(rotvec(m)) for m in R], atol=1e-8)
     # the solver's camera-frame covariance in W keeps its traces (sigmas are unchanged)
     C = np.diag([1.0, 2, 3, 4, 5, 6])
     Cw = world_covariance(C, look_at([2, 1, 1], [0, 0, 0]))
