@@ -14,11 +14,18 @@ import sys
 import traceback
 from collections.abc import Mapping
 
-import click
+# mirage keeps both cores busy with its own threads (decoding ahead, detecting ahead);
+# OpenBLAS's spinning helper threads would fight them for the cores over small matrix
+# products (sample orbit: 42 -> 62 frames/s without them), so numpy's BLAS runs in the
+# calling thread unless the environment says otherwise. Set before numpy is imported.
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from . import __version__, fileio, signals, ui
-from .config import check_config, read_config
-from .errors import EnvironmentFailure, MirageError
+import click  # noqa: E402
+
+from . import __version__, fileio, signals, ui  # noqa: E402
+from .config import check_config, read_config  # noqa: E402
+from .errors import EnvironmentFailure, MirageError  # noqa: E402
 
 _debug = {"on": False}
 # an OS error the user can fix (a path or a permission), as opposed to a failing machine

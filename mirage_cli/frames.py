@@ -13,7 +13,9 @@ from __future__ import annotations
 import glob
 import logging
 import os
+import queue
 import re
+import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -329,6 +331,55 @@ class FrameSource:
                 i += 1
         finally:
             cap.release()
+
+
+def prefetch(frames: Iterator[Frame], depth: int = 16) -> Iterator[Frame]:
+    """`frames`, decoded ahead in a thread of their own.
+
+    FFmpeg's decoding and image reading release the GIL, so they run on the second core
+    while the tracker works on the first; the frames, their order and any error (raised
+    where it happened in the sequence) are those of `frames`. Closing this generator (the
+    consumer stopped or was interrupted) stops the thread and closes `frames` there.
+    """
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    done = object()
+
+    def put(item) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def work():
+        try:
+            for f in frames:
+                if not put(f):
+                    return
+            put(done)
+        except BaseException as e:  # delivered in order, raised in the consumer
+            put((done, e))
+        finally:
+            close = getattr(frames, "close", None)
+            if close is not None:
+                close()
+
+    thread = threading.Thread(target=work, name="mirage-decode", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if type(item) is tuple and item[0] is done:  # a Frame is a NamedTuple
+                raise item[1]
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=5.0)
 
 
 def matching_camera(camera: Camera, width: int, height: int) -> Camera:

@@ -5,15 +5,21 @@ Mirage-S from the best keyframe's or the predicted pose) or *flowed* (the last d
 inliers followed with pyramidal Lucas-Kanade from the frame they were detected in, keeping
 their 3D points, then Mirage-S from the previous pose). Flow costs a few milliseconds where
 detection costs tens, so detection runs only every `redetect_every` frames, when the flow
-weakens or when a flowed pose leaves the prediction; both end in the same gate, so a frame
-without enough consistent evidence on the landmark itself, or whose honest uncertainty is
-too large, is not `ok`: never a guess.
+weakens or when a flowed pose leaves the prediction. The regular detection is known in
+advance: as soon as a frame is detected, the features of the frame `redetect_every` + 1
+later are detected on the second core (in the box its pose predicts), while the frames
+between are flowed. What is detected, and where, depends on the frames alone, never on
+timing, so a run gives the same poses however the threads are scheduled. Every pose ends
+in the same gate, so a frame without enough consistent evidence on the landmark itself,
+or whose honest uncertainty is too large, is not `ok`: never a guess.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator
+from collections import deque
+from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -40,6 +46,8 @@ from .trajectory import FrameRecord, Measurement, Status
 class TrackSettings:
     method: str = "mirage-s"
     redetect_every: int = 5  # frames between full detections while flow holds
+    detect_ahead: bool = True  # the next regular detection's features are detected on
+    # the second core while the frames before it are flowed (False: in its own frame)
     min_inliers: int = 15  # fewer consistent points without a prediction: lost
     min_track_inliers: int = 6  # while tracking (a prediction to match around and start
     # Mirage-S from) the pose's uncertainty decides, so a few well-spread points suffice
@@ -62,6 +70,8 @@ class TrackSettings:
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
     relocalise_every: int = 3  # while lost: the whole frame every N frames, a half-size
     # probe between (1: the whole frame every time)
+    long_lost: int = 12  # lost longer than this (a look-away, not a dropout): the whole
+    # frame every 2N frames (the probe still finds a near landmark in its first frame back)
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
     max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
@@ -140,6 +150,25 @@ def unambiguous_pose(
     return final
 
 
+_WORKER: ThreadPoolExecutor | None = None
+
+
+def _worker() -> ThreadPoolExecutor:
+    """The one background thread for detections (OpenCV's detectors release the GIL)."""
+    global _WORKER
+    if _WORKER is None:
+        _WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirage-detect")
+    return _WORKER
+
+
+@dataclass
+class _Pending:
+    """Features of a coming frame, being detected in the background."""
+
+    frame_no: int
+    features: Future
+
+
 class Tracker:
     """Stateful per-frame tracker; feed frames in order with `process(gray)`.
 
@@ -179,6 +208,8 @@ class Tracker:
         self._anchor_no = -1  # the frame whose detection the flowed points come from
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
         self._uncertain_pose: Pose | None = None
+        self._pending: _Pending | None = None  # the next detection's features, if started
+        self._bg_detector = None  # the worker's own detector object
         # where to detect while tracking: where the model has points (a subsample suffices;
         # the ground near the landmark steadies the pose, so it counts)
         P = model.points
@@ -186,10 +217,18 @@ class Tracker:
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
+    @property
+    def lookahead(self) -> int:
+        """Frames `process` wants to see ahead of the current one (`ahead`)."""
+        return self.s.redetect_every + 1 if self.s.flow and self.s.detect_ahead else 0
+
     # ------------------------------------------------------------------------------------
-    def process(self, gray: np.ndarray) -> FrameRecord:
+    def process(self, gray: np.ndarray, ahead: Sequence[np.ndarray | None] = ()) -> FrameRecord:
+        """The record of this frame; `ahead` holds the next frames' gray images (None where
+        undecodable), up to `lookahead` of them, for the next detection's features."""
         res = None
         self._uncertain_pose = None
+        self._frame_no += 1
         if (
             self.s.flow
             and self.prev_pose is not None
@@ -197,7 +236,6 @@ class Tracker:
             and self.since_detect < self.s.redetect_every
         ):
             res = self._flow(gray)
-        self._frame_no += 1
         if res is None or not res.ok:
             res = self._detect(gray)
             if res.ok:
@@ -213,8 +251,11 @@ class Tracker:
                 self.velocity = None
             self.prev_pose = res.pose
             self.lost_run = 0
+            if res.mode != "flow":
+                self._detect_ahead(ahead, gray.shape)
         else:
             self.lost_run += 1
+            self._pending = None
             self.track_px = self.track_X = self.track_land = None
             self.velocity = None
             if self.lost_run > 3:
@@ -292,19 +333,62 @@ class Tracker:
             res.inlier_px = self.track_px
         return res
 
+    def _detect_ahead(self, ahead, shape) -> None:
+        """A frame was just detected: if flow holds, the next detection comes
+        `redetect_every` + 1 frames later, so start detecting that frame's features now, on
+        the worker thread, in the box that covers the model both where it is now and where
+        the constant-velocity prediction puts it then (a box too small to detect without
+        upsampling, a far landmark, is left to its own frame: its scale must come from
+        the box that frame predicts)."""
+        self._pending = None
+        k = self.lookahead
+        if not k or len(ahead) < k or ahead[k - 1] is None or ahead[k - 1].shape != shape:
+            return
+        then = self.prev_pose
+        if self.velocity is not None:
+            for _ in range(k):
+                then = self.velocity @ then
+            u, _, vt = np.linalg.svd(then.R)
+            then = Pose(u @ vt, then.t)
+        boxes = [self._model_box(p, shape) for p in (self.prev_pose, then)]
+        box = None
+        if all(b is not None for b in boxes):
+            (a0, a1, a2, a3), (b0, b1, b2, b3) = boxes
+            if max(b2 - b0, b3 - b1, a2 - a0, a3 - a1) < self.s.upsample_below_px:
+                return
+            box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3))
+        if self._bg_detector is None:
+            self._bg_detector = make_detector(self.model.detector)
+        job = _worker().submit(self._box_features, ahead[k - 1], box, self._bg_detector)
+        self._pending = _Pending(self._frame_no + k, job)
+
+    def _ahead_features(self):
+        """This frame's features when they were detected ahead, else None."""
+        job, self._pending = self._pending, None
+        if job is None or job.frame_no != self._frame_no:
+            return None
+        return job.features.result()
+
+    def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
+        """Features in the pixel box (None: the whole frame), a small box upsampled first."""
+        if box is None:
+            return detect(gray, detector)
+        x0, y0, x1, y1 = box
+        crop = gray[y0:y1, x0:x1]
+        up = 1.0
+        if max(crop.shape) < self.s.upsample_below_px:  # small and far: finer features
+            up = self.s.upsample_to_px / max(crop.shape)
+            crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
+        kps, desc = detect(crop, detector)
+        return kps / np.float32(up) + np.array([x0, y0], np.float32), desc
+
     def _detect(self, gray: np.ndarray) -> FrameRecord:
         self.since_detect = 0
         pred = self._predicted()
         box = self._model_box(pred, gray.shape) if pred is not None else None
-        if box is not None:  # tracking: detect only where the model is predicted
-            x0, y0, x1, y1 = box
-            crop = gray[y0:y1, x0:x1]
-            up = 1.0
-            if max(crop.shape) < self.s.upsample_below_px:  # small and far: finer features
-                up = self.s.upsample_to_px / max(crop.shape)
-                crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
-            kps, desc = detect(crop, self.detector)
-            kps = kps / np.float32(up) + np.array([x0, y0], np.float32)
+        early = self._ahead_features() if pred is not None else None
+        if early is not None or box is not None:  # tracking: where the model is predicted
+            kps, desc = early if early is not None else self._box_features(gray, box, self.detector)
             if len(kps) >= self.s.min_track_inliers:
                 res = self._guided(kps, desc, pred)
                 # an uncertain pose found the landmark where predicted and says its view
@@ -312,7 +396,8 @@ class Tracker:
                 # view and costs a full-frame detection more (4 m orbit: 200 ms a frame)
                 if res.ok or res.status == Status.UNCERTAIN:
                     return res
-        if self.lost_run % self.s.relocalise_every:
+        every = self.s.relocalise_every * (2 if self.lost_run > self.s.long_lost else 1)
+        if self.lost_run % every:
             # lost for a while: the whole frame is searched every `relocalise_every` frames;
             # between, a half-size probe (a quarter of the pixels) goes on to the whole
             # frame only when it finds the landmark (a far one waits for the next search)
@@ -533,19 +618,34 @@ def run(
     Undecodable frames are `decode_error`, frames of another size than the camera
     `size_mismatch`. `keep_images` leaves each frame's image on its record (overlays).
     """
-    for f in frames:
+    k = tracker.lookahead
+    size = tracker.camera.size
+    queue: deque = deque()  # (frame, gray or None), the current one first
+
+    def step() -> FrameRecord:
+        f, gray = queue.popleft()
         t0 = time.perf_counter()
         if f.image is None:
             rec = FrameRecord(Status.DECODE_ERROR)
+        elif gray is None:
+            rec = FrameRecord(Status.SIZE_MISMATCH)
         else:
-            gray = cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) if f.image.ndim == 3 else f.image
-            if gray.shape[::-1] != tracker.camera.size:
-                rec = FrameRecord(Status.SIZE_MISMATCH)
-            else:
-                with through_compiled_code():
-                    rec = tracker.process(gray)
+            with through_compiled_code():
+                rec = tracker.process(gray, [g for _, g in queue])
         rec.frame, rec.time_s = f.id, f.time_s
         rec.ms = round((time.perf_counter() - t0) * 1000, 2)
         if keep_images:
             rec.image = f.image
-        yield rec
+        return rec
+
+    for f in frames:
+        gray = None
+        if f.image is not None:
+            gray = cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) if f.image.ndim == 3 else f.image
+            if gray.shape[::-1] != size:
+                gray = None
+        queue.append((f, gray))
+        if len(queue) > k:
+            yield step()
+    while queue:
+        yield step()

@@ -28,7 +28,7 @@ from .fileio import (
     require_file,
     video_frames_written,
 )
-from .frames import FrameSource, matching_camera, with_topic
+from .frames import FrameSource, matching_camera, prefetch, with_topic
 from .model import LandmarkModel
 from .plotting import draw_overlay
 from .smooth import Smoother, SmoothSettings
@@ -239,7 +239,7 @@ def _track(
         if rerun:
             rrd = stack.enter_context(TrackRecording(rerun, tracker.model, camera))
         bar = stack.enter_context(ui.progress(total, "tracking"))
-        frames = src.frames(first, last, every)
+        frames = prefetch(src.frames(first, last, every))
 
         def emit(records):
             for rec in records:
