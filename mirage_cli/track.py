@@ -5,11 +5,12 @@ Mirage-S from the best keyframe's or the predicted pose) or *flowed* (the last d
 inliers followed with pyramidal Lucas-Kanade from the frame they were detected in, keeping
 their 3D points, then Mirage-S from the previous pose). Flow costs a few milliseconds where
 detection costs tens, so detection runs only every `redetect_every` frames, when the flow
-weakens or when a flowed pose leaves the prediction. The regular detection is known in
-advance: as soon as a frame is detected, the features of the frame `redetect_every` + 1
-later are detected on the second core (in the box its pose predicts), while the frames
-between are flowed. What is detected, and where, depends on the frames alone, never on
-timing, so a run gives the same poses however the threads are scheduled. Every pose ends
+weakens or when a flowed pose leaves the prediction. The costly part of a detection, the
+features, is mostly known in advance and runs on the second core: as soon as a frame is
+detected, the features of the frame `redetect_every` + 1 later (in the box its pose
+predicts), while the frames between are flowed; and while lost, the next frame's search
+while this one is matched. What is detected, and where, depends on the frames alone,
+never on timing, so a run gives the same poses however the threads are scheduled. Every pose ends
 in the same gate, so a frame without enough consistent evidence on the landmark itself,
 or whose honest uncertainty is too large, is not `ok`: never a guess.
 """
@@ -161,14 +162,6 @@ def _worker() -> ThreadPoolExecutor:
     return _WORKER
 
 
-@dataclass
-class _Pending:
-    """Features of a coming frame, being detected in the background."""
-
-    frame_no: int
-    features: Future
-
-
 class Tracker:
     """Stateful per-frame tracker; feed frames in order with `process(gray)`.
 
@@ -208,7 +201,9 @@ class Tracker:
         self._anchor_no = -1  # the frame whose detection the flowed points come from
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
         self._uncertain_pose: Pose | None = None
-        self._pending: _Pending | None = None  # the next detection's features, if started
+        # features of coming frames being detected on the worker: (frame, kind) -> Future,
+        # kind 'box' (the next regular detection), 'probe' or 'full' (a lost frame's search)
+        self._pending: dict[tuple[int, str], Future] = {}
         self._bg_detector = None  # the worker's own detector object
         # where to detect while tracking: where the model has points (a subsample suffices;
         # the ground near the landmark steadies the pose, so it counts)
@@ -229,6 +224,9 @@ class Tracker:
         res = None
         self._uncertain_pose = None
         self._frame_no += 1
+        self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
+        if self.prev_pose is None and self.hint is None:
+            self._search_ahead(ahead)
         if (
             self.s.flow
             and self.prev_pose is not None
@@ -255,7 +253,7 @@ class Tracker:
                 self._detect_ahead(ahead, gray.shape)
         else:
             self.lost_run += 1
-            self._pending = None
+            self._drop("box")
             self.track_px = self.track_X = self.track_land = None
             self.velocity = None
             if self.lost_run > 3:
@@ -340,7 +338,7 @@ class Tracker:
         the constant-velocity prediction puts it then (a box too small to detect without
         upsampling, a far landmark, is left to its own frame: its scale must come from
         the box that frame predicts)."""
-        self._pending = None
+        self._drop("box")
         k = self.lookahead
         if not k or len(ahead) < k or ahead[k - 1] is None or ahead[k - 1].shape != shape:
             return
@@ -357,17 +355,45 @@ class Tracker:
             if max(b2 - b0, b3 - b1, a2 - a0, a3 - a1) < self.s.upsample_below_px:
                 return
             box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3))
+        self._start(self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
+
+    def _search_ahead(self, ahead) -> None:
+        """Lost with nothing to predict from: the next frame, if this one stays lost, is
+        searched the same way (the whole frame or the half-size probe, by `lost_run`), so
+        its features are detected on the worker while this frame is matched."""
+        if not self.lookahead or not ahead or ahead[0] is None:
+            return
+        kind = "probe" if self._probes(self.lost_run + 1) else "full"
+        fn = self._probe_features if kind == "probe" else detect
+        self._start(self._frame_no + 1, kind, fn, ahead[0])
+
+    def _drop(self, kind: str) -> None:
+        """Forget the features of that kind detected ahead (the plan changed)."""
+        self._pending = {k: f for k, f in self._pending.items() if k[1] != kind}
+
+    def _start(self, frame_no: int, kind: str, fn, gray, *args) -> None:
         if self._bg_detector is None:
             self._bg_detector = make_detector(self.model.detector)
-        job = _worker().submit(self._box_features, ahead[k - 1], box, self._bg_detector)
-        self._pending = _Pending(self._frame_no + k, job)
+        if (frame_no, kind) not in self._pending:
+            self._pending[frame_no, kind] = _worker().submit(fn, gray, *args, self._bg_detector)
 
-    def _ahead_features(self):
-        """This frame's features when they were detected ahead, else None."""
-        job, self._pending = self._pending, None
-        if job is None or job.frame_no != self._frame_no:
-            return None
-        return job.features.result()
+    def _features(self, kind: str, fn, gray, *args):
+        """This frame's features of that kind: detected ahead when they were, else now."""
+        job = self._pending.pop((self._frame_no, kind), None)
+        return job.result() if job is not None else fn(gray, *args, self.detector)
+
+    def _probes(self, lost_run: int) -> bool:
+        """Lost for a while: the whole frame is searched every `relocalise_every` frames
+        (every 2N after `long_lost`); between, a half-size probe (a quarter of the pixels)
+        goes on to the whole frame only when it finds the landmark (a far one waits for the
+        next search)."""
+        every = self.s.relocalise_every * (2 if lost_run > self.s.long_lost else 1)
+        return lost_run % every != 0
+
+    def _probe_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
+        small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+        kps, desc = detect(small, detector)
+        return kps * np.float32(2) + np.float32(0.5), desc
 
     def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
         """Features in the pixel box (None: the whole frame), a small box upsampled first."""
@@ -386,9 +412,9 @@ class Tracker:
         self.since_detect = 0
         pred = self._predicted()
         box = self._model_box(pred, gray.shape) if pred is not None else None
-        early = self._ahead_features() if pred is not None else None
+        early = self._pending.pop((self._frame_no, "box"), None) if pred is not None else None
         if early is not None or box is not None:  # tracking: where the model is predicted
-            kps, desc = early if early is not None else self._box_features(gray, box, self.detector)
+            kps, desc = early.result() if early else self._box_features(gray, box, self.detector)
             if len(kps) >= self.s.min_track_inliers:
                 res = self._guided(kps, desc, pred)
                 # an uncertain pose found the landmark where predicted and says its view
@@ -396,15 +422,11 @@ class Tracker:
                 # view and costs a full-frame detection more (4 m orbit: 200 ms a frame)
                 if res.ok or res.status == Status.UNCERTAIN:
                     return res
-        every = self.s.relocalise_every * (2 if self.lost_run > self.s.long_lost else 1)
-        if self.lost_run % every:
-            # lost for a while: the whole frame is searched every `relocalise_every` frames;
-            # between, a half-size probe (a quarter of the pixels) goes on to the whole
-            # frame only when it finds the landmark (a far one waits for the next search)
+        if self._probes(self.lost_run):
             probe = self._probe(gray)
             if probe.status == Status.LOST:
                 return probe
-        kps, desc = detect(gray, self.detector)
+        kps, desc = self._features("full", detect, gray)
         if desc is None or len(kps) < self.s.min_inliers:
             return FrameRecord(Status.LOST, mode="detect")
         if pred is not None and box is None:
@@ -414,11 +436,10 @@ class Tracker:
         return self._relocalise(kps, desc)  # also when the prediction was too far off
 
     def _probe(self, gray: np.ndarray) -> FrameRecord:
-        small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-        kps, desc = detect(small, self.detector)
+        kps, desc = self._features("probe", self._probe_features, gray)
         if desc is None or len(kps) < self.s.min_inliers:
             return FrameRecord(Status.LOST, mode="relocalise")
-        return self._relocalise(kps * np.float32(2) + np.float32(0.5), desc)
+        return self._relocalise(kps, desc)
 
     def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
         """Pixel box (x0, y0, x1, y1) around the model's points as the predicted pose sees
@@ -613,8 +634,9 @@ def run(
     """Track frames in order: one final record per frame, yielded as soon as it is final.
 
     The one tracking loop of `mirage track`, the demo and the benchmarks. A generator, so
-    that callers write each record as it comes; it may hold a few frames back (to confirm
-    a pose with the frames after it) but never changes a record once yielded.
+    that callers write each record as it comes; it reads `tracker.lookahead` frames ahead
+    (their features are detected in the background) but never changes a record once
+    yielded.
     Undecodable frames are `decode_error`, frames of another size than the camera
     `size_mismatch`. `keep_images` leaves each frame's image on its record (overlays).
     """

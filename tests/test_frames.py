@@ -1,5 +1,7 @@
 """The one frame reader: image-sequence times (--fps, timestamp names), videos, scaling."""
 
+import itertools
+import threading
 from pathlib import Path
 
 import cv2
@@ -10,7 +12,7 @@ from conftest import SAMPLE, assert_one_line_error
 
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
-from mirage_cli.frames import FrameSource, matching_camera, name_times
+from mirage_cli.frames import Frame, FrameSource, matching_camera, name_times, prefetch
 
 
 def orbit_frames(folder: Path, names: list[str], first: int = 0) -> list[Path]:
@@ -104,3 +106,32 @@ def test_track_image_times_agree_in_csv_and_tum(sample_model, tmp_path, mirage):
         assert fps == pytest.approx(1 / dt, rel=1e-3) and n == len(names)
     p = mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--fps", "5")
     assert_one_line_error(p, 2, "--fps")
+
+
+def test_prefetch_keeps_order_and_raises_where_the_error_was():
+    def reader():
+        yield from (Frame(i, i, i / 30, None) for i in range(5))
+        raise InputError("frame 5 is unreadable")
+
+    got = []
+    with pytest.raises(InputError, match="frame 5 is unreadable"):
+        for f in prefetch(reader(), depth=2):
+            got.append(f.index)
+    assert got == [0, 1, 2, 3, 4]
+
+
+def test_prefetch_closed_early_stops_and_closes_the_reader():
+    closed = threading.Event()
+
+    def reader():
+        try:
+            for i in itertools.count():
+                yield Frame(i, i, i / 30, None)
+        finally:
+            closed.set()
+
+    frames = prefetch(reader(), depth=2)
+    assert [next(frames).index for _ in range(3)] == [0, 1, 2]
+    frames.close()  # the consumer stopped (an interrupt, an error downstream)
+    assert closed.wait(5.0)
+    assert not any(t.name == "mirage-decode" and t.is_alive() for t in threading.enumerate())
