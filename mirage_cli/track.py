@@ -72,7 +72,7 @@ class TrackSettings:
     relocalise_every: int = 3  # while lost: the whole frame every N frames, a half-size
     # probe between (1: the whole frame every time)
     long_lost: int = 12  # lost longer than this (a look-away, not a dropout): the whole
-    # frame every 2N frames (the probe still finds a near landmark in its first frame back)
+    # frame every 2N frames, the probe every other frame between
     max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
     max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
     guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
@@ -363,9 +363,10 @@ class Tracker:
         its features are detected on the worker while this frame is matched."""
         if not self.lookahead or not ahead or ahead[0] is None:
             return
-        kind = "probe" if self._probes(self.lost_run + 1) else "full"
-        fn = self._probe_features if kind == "probe" else detect
-        self._start(self._frame_no + 1, kind, fn, ahead[0])
+        kind = self._search(self.lost_run + 1)
+        if kind is not None:
+            fn = self._probe_features if kind == "probe" else detect
+            self._start(self._frame_no + 1, kind, fn, ahead[0])
 
     def _drop(self, kind: str) -> None:
         """Forget the features of that kind detected ahead (the plan changed)."""
@@ -382,13 +383,17 @@ class Tracker:
         job = self._pending.pop((self._frame_no, kind), None)
         return job.result() if job is not None else fn(gray, *args, self.detector)
 
-    def _probes(self, lost_run: int) -> bool:
-        """Lost for a while: the whole frame is searched every `relocalise_every` frames
-        (every 2N after `long_lost`); between, a half-size probe (a quarter of the pixels)
-        goes on to the whole frame only when it finds the landmark (a far one waits for the
-        next search)."""
-        every = self.s.relocalise_every * (2 if lost_run > self.s.long_lost else 1)
-        return lost_run % every != 0
+    def _search(self, lost_run: int) -> str | None:
+        """How a lost frame is searched: 'full' (the whole frame) every `relocalise_every`
+        frames, a 'probe' between (half size: a quarter of the pixels; it goes on to the
+        whole frame only when it finds the landmark, so a far one waits for the next full
+        search). Lost for longer than `long_lost` frames (a look-away, not a dropout), the
+        whole frame every 2N frames and the probe every other frame between (None: not
+        searched), so a near landmark is found within a frame of its return."""
+        long = lost_run > self.s.long_lost
+        if lost_run % (self.s.relocalise_every * (2 if long else 1)) == 0:
+            return "full"
+        return None if long and lost_run % 2 else "probe"
 
     def _probe_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
         small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
@@ -422,7 +427,10 @@ class Tracker:
                 # view and costs a full-frame detection more (4 m orbit: 200 ms a frame)
                 if res.ok or res.status == Status.UNCERTAIN:
                     return res
-        if self._probes(self.lost_run):
+        search = self._search(self.lost_run)
+        if search is None:
+            return FrameRecord(Status.LOST, mode="relocalise")
+        if search == "probe":
             probe = self._probe(gray)
             if probe.status == Status.LOST:
                 return probe

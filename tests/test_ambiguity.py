@@ -215,8 +215,9 @@ def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, m
 
 
 def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeypatch):
-    """Lost for a while (a look-away): a half-size probe between full searches, which
-    goes on to the whole frame only when it finds the landmark."""
+    """Lost for a while: a half-size probe between full searches, which goes on to the
+    whole frame only when it finds the landmark. Lost for more than 12 frames (a
+    look-away), the whole frame every 6th frame and the probe every other frame."""
     from mirage_cli import track
     from mirage_cli.trajectory import FrameRecord, Status
 
@@ -228,6 +229,14 @@ def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeyp
         (3, Status.LOST, ["full"]),
         (0, Status.LOST, ["full"]),
         (1, Status.UNCERTAIN, ["half", "full"]),
+        (12, Status.LOST, ["full"]),
+        (13, Status.LOST, []),
+        (14, Status.LOST, ["half"]),
+        (15, Status.LOST, []),
+        (16, Status.LOST, ["half"]),
+        (18, Status.LOST, ["full"]),
+        (19, Status.LOST, []),
+        (20, Status.UNCERTAIN, ["half", "full"]),
     ):
         sizes, relocs = [], iter([probe_finds, Status.LOST])
         monkeypatch.setattr(
