@@ -9,11 +9,19 @@ frame rate of the video as the physical ceiling.
     python benchmarks/track.py --methods mirage-s --repeats 3
     mirage synth /tmp/blur --only orbit --duration 6 --motion-blur 4 --noise 3
     python benchmarks/track.py --data /tmp/blur --methods mirage-s,sqpnp   # stress test
+    git worktree add /tmp/old <commit>
+    python benchmarks/track.py --methods mirage-s --no-plain --repeats 5 --against /tmp/old
+
+`--against` runs another checkout's `mirage track` on the same video and model, each run
+interleaved with this checkout's, and prints both (frames/s by the command's summary, wall
+seconds, peak memory) and their ratio: the side-by-side comparison on a shared machine.
+The in-process loops run with numpy's BLAS in the calling thread, as `mirage` does.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -21,8 +29,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
+ENV = dict(os.environ)  # the commands run in the caller's environment, as a user's would
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the mirage command sets it
+os.environ.setdefault("MKL_NUM_THREADS", "1")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -176,6 +188,9 @@ def main():
     ap.add_argument("--no-plain", action="store_true", help="skip the plain OpenCV pipeline")
     ap.add_argument("--no-command", action="store_true", help="skip the end-to-end CLI run")
     ap.add_argument(
+        "--against", type=Path, help="another checkout whose `mirage track` runs side by side"
+    )
+    ap.add_argument(
         "--data",
         type=Path,
         default=SAMPLE,
@@ -233,36 +248,70 @@ def main():
     if args.no_command:
         return
     loop = next((r["fps"] for r in rows if r["pipeline"] == "mirage-s"), float("nan"))
-    cmd_fps, wall = command_fps(model, args.data / "orbit.mp4", max(1, args.repeats))
+    checkouts = [("this checkout", ROOT)]
+    if args.against is not None:
+        checkouts.append((f"{args.against}", args.against.resolve()))
+    runs = command_runs(model, args.data / "orbit.mp4", max(1, args.repeats), checkouts)
     ceiling = float(np.median(decode))
+    fps, wall, mb = (runs[ROOT][i] for i in range(3))
     print(
         f"\n| end to end | frames/s | share of the decode-only ceiling |\n|---|---|---|\n"
-        f"| `mirage track` (its summary; wall {wall:.1f} s with start-up) | {cmd_fps:.1f} "
-        f"| {cmd_fps / ceiling:.3f} |\n| the tracking loop (mirage-s row) | {loop:.1f} "
+        f"| `mirage track` (its summary; wall {wall:.1f} s with start-up, peak {mb:.0f} MB) "
+        f"| {fps:.1f} | {fps / ceiling:.3f} |\n| the tracking loop (mirage-s row) | {loop:.1f} "
         f"| {loop / ceiling:.3f} |\n| decode only | {ceiling:.0f} | 1 |"
     )
+    if args.against is None:
+        return
+    print(
+        f"\n| `mirage track`, runs interleaved (median of {max(1, args.repeats)}) | frames/s "
+        "(summary) | wall s | peak MB |\n|---|---|---|---|"
+    )
+    for name, path in checkouts:
+        f, w, m = runs[path]
+        print(f"| {name} | {f:.1f} | {w:.1f} | {m:.0f} |")
+    f0, w0, _ = runs[checkouts[1][1]]
+    print(f"| ratio (this / other) | {fps / f0:.2f}x | {wall / w0:.2f} | |")
 
 
-def command_fps(model, video: Path, repeats: int) -> tuple[float, float]:
-    """`mirage track` end to end in a subprocess: (median frames/s of its summary, median wall
-    seconds including start-up and model loading)."""
-    rates, walls = [], []
+# runs `python -m mirage_cli ARGS...` and reports its own peak memory at exit (VmHWM: a
+# child's rusage would count the parent's pages it was forked from)
+PEAK = (
+    "import atexit, runpy, sys\n"
+    "def peak():\n"
+    "    for line in open('/proc/self/status'):\n"
+    "        if line.startswith('VmHWM:'):\n"
+    "            print('peak_rss_kb', line.split()[1], file=sys.stderr)\n"
+    "atexit.register(peak)\n"
+    "sys.argv = ['mirage'] + sys.argv[1:]\n"
+    "runpy.run_module('mirage_cli', run_name='__main__')\n"
+)
+
+
+def command_runs(model, video: Path, repeats: int, checkouts) -> dict:
+    """`mirage track` end to end in a subprocess of each checkout, interleaved: per checkout
+    the medians of (frames/s of its summary, wall seconds including start-up and model
+    loading, peak resident memory in MB)."""
+    res = {path: [] for _, path in checkouts}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "model.mirage"
         model.save(path)
         for _ in range(repeats):
-            t0 = time.perf_counter()
-            p = subprocess.run(
-                [sys.executable, "-m", "mirage_cli", "track", str(video), "--model", str(path),
-                 "-o", str(Path(tmp) / "poses.csv")],
-                capture_output=True, text=True, cwd=ROOT,
-            )  # fmt: skip
-            walls.append(time.perf_counter() - t0)
-            m = re.search(r"([0-9.]+) frames/s", p.stdout + p.stderr)
-            if p.returncode != 0 or m is None:
-                raise SystemExit(f"mirage track failed: {p.stderr.strip()[-300:]}")
-            rates.append(float(m.group(1)))
-    return float(np.median(rates)), float(np.median(walls))
+            for _, root in checkouts:
+                env = dict(ENV, PYTHONPATH=str(root))  # that checkout's package
+                t0 = time.perf_counter()
+                p = subprocess.run(
+                    [sys.executable, "-c", PEAK, "track", str(video), "--model", str(path),
+                     "-o", str(Path(tmp) / "poses.csv")],
+                    capture_output=True, text=True, cwd=root, env=env,
+                )  # fmt: skip
+                wall = time.perf_counter() - t0
+                text = p.stdout + p.stderr
+                m = re.search(r"([0-9.]+) frames/s", text)
+                kb = re.search(r"peak_rss_kb (\d+)", text)
+                if p.returncode != 0 or m is None or kb is None:
+                    raise SystemExit(f"mirage track ({root}) failed: {text.strip()[-300:]}")
+                res[root].append((float(m.group(1)), wall, int(kb.group(1)) / 1024))
+    return {k: tuple(np.median(np.array(v), axis=0).tolist()) for k, v in res.items()}
 
 
 if __name__ == "__main__":
