@@ -10,13 +10,14 @@ features, is mostly known in advance and runs on the second core: as soon as a f
 detected, the features of the frame `redetect_every` + 1 later (in the box its pose
 predicts), while the frames between are flowed; and while lost, the next frame's search
 while this one is matched. What is detected, and where, depends on the frames alone,
-never on timing, so a run gives the same poses however the threads are scheduled. Every pose ends
-in the same gate, so a frame without enough consistent evidence on the landmark itself,
-or whose honest uncertainty is too large, is not `ok`: never a guess.
+never on timing, so a run gives the same poses however the threads are scheduled. Every
+pose ends in the same gate, so a frame without enough consistent evidence on the landmark
+itself, or whose honest uncertainty is too large, is not `ok`: never a guess.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
@@ -160,6 +161,14 @@ def _worker() -> ThreadPoolExecutor:
     if _WORKER is None:
         _WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirage-detect")
     return _WORKER
+
+
+def _forget_worker() -> None:
+    global _WORKER
+    _WORKER = None  # a forked child has none of the parent's threads: start its own
+
+
+os.register_at_fork(after_in_child=_forget_worker)
 
 
 class Tracker:

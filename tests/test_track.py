@@ -310,3 +310,25 @@ def test_detection_ahead_gives_the_serial_run_poses(sample_model, monkeypatch):
         assert a.keyframe == b.keyframe
         if a.ok:
             assert np.array_equal(a.pose.R, b.pose.R) and np.array_equal(a.pose.t, b.pose.t)
+
+
+def test_a_forked_child_tracks_with_a_worker_of_its_own(sample_model):
+    """The worker thread does not survive a fork: a child (a user's fork-based pool) that
+    inherited the parent's worker must start its own, not wait on a thread it lacks."""
+    import multiprocessing as mp
+
+    model = LandmarkModel.load(sample_model)
+    frames = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 20))
+    tracker = Tracker(model, model.camera, TrackSettings())
+    parent = [r.status for r in track.run(iter(frames), tracker)]  # the parent's worker ran
+    assert track._WORKER is not None
+    with mp.get_context("fork").Pool(1) as pool:
+        child = pool.apply_async(_track_statuses, (sample_model,)).get(timeout=60)
+    assert child == [str(s) for s in parent]
+
+
+def _track_statuses(model_path):
+    model = LandmarkModel.load(model_path)
+    frames = FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 20)
+    tracker = Tracker(model, model.camera, TrackSettings())
+    return [str(r.status) for r in track.run(frames, tracker)]
