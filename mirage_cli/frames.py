@@ -333,13 +333,15 @@ class FrameSource:
             cap.release()
 
 
-def prefetch(frames: Iterator[Frame], depth: int = 16) -> Iterator[Frame]:
+def prefetch(frames: Iterator[Frame], depth: int = 4) -> Iterator[Frame]:
     """`frames`, decoded ahead in a thread of their own.
 
     FFmpeg's decoding and image reading release the GIL, so they run on the second core
     while the tracker works on the first; the frames, their order and any error (raised
     where it happened in the sequence) are those of `frames`. Closing this generator (the
     consumer stopped or was interrupted) stops the thread and closes `frames` there.
+    Decoding is far faster than tracking, so a few frames ahead (`depth`) keep it fed
+    without holding many (a 4K frame is 25 MB).
     """
     q: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
