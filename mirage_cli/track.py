@@ -271,12 +271,15 @@ class Tracker:
         self.hint = self._uncertain_pose if res.status == Status.UNCERTAIN else None
         return res
 
-    def _predicted(self) -> Pose | None:
+    def _predicted(self, frames: int = 1) -> Pose | None:
+        """The pose `frames` frames after the last one, at constant velocity."""
         if self.prev_pose is None:
             return self.hint  # the last frame's uncertain pose, if any
         if self.velocity is None:
             return self.prev_pose
-        p = self.velocity @ self.prev_pose
+        p = self.prev_pose
+        for _ in range(frames):
+            p = self.velocity @ p
         u, _, vt = np.linalg.svd(p.R)  # keep R orthonormal: products drift off it
         return Pose(u @ vt, p.t)
 
@@ -351,13 +354,7 @@ class Tracker:
         k = self.lookahead
         if not k or len(ahead) < k or ahead[k - 1] is None or ahead[k - 1].shape != shape:
             return
-        then = self.prev_pose
-        if self.velocity is not None:
-            for _ in range(k):
-                then = self.velocity @ then
-            u, _, vt = np.linalg.svd(then.R)
-            then = Pose(u @ vt, then.t)
-        boxes = [self._model_box(p, shape) for p in (self.prev_pose, then)]
+        boxes = [self._model_box(p, shape) for p in (self.prev_pose, self._predicted(k))]
         box = None
         if all(b is not None for b in boxes):
             (a0, a1, a2, a3), (b0, b1, b2, b3) = boxes
@@ -384,8 +381,7 @@ class Tracker:
     def _start(self, frame_no: int, kind: str, fn, gray, *args) -> None:
         if self._bg_detector is None:
             self._bg_detector = make_detector(self.model.detector)
-        if (frame_no, kind) not in self._pending:
-            self._pending[frame_no, kind] = _worker().submit(fn, gray, *args, self._bg_detector)
+        self._pending[frame_no, kind] = _worker().submit(fn, gray, *args, self._bg_detector)
 
     def _features(self, kind: str, fn, gray, *args):
         """This frame's features of that kind: detected ahead when they were, else now."""
@@ -428,7 +424,10 @@ class Tracker:
         box = self._model_box(pred, gray.shape) if pred is not None else None
         early = self._pending.pop((self._frame_no, "box"), None) if pred is not None else None
         if early is not None or box is not None:  # tracking: where the model is predicted
-            kps, desc = early.result() if early else self._box_features(gray, box, self.detector)
+            if early is not None:
+                kps, desc = early.result()
+            else:
+                kps, desc = self._box_features(gray, box, self.detector)
             if len(kps) >= self.s.min_track_inliers:
                 res = self._guided(kps, desc, pred)
                 # an uncertain pose found the landmark where predicted and says its view
