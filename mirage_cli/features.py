@@ -225,38 +225,81 @@ def guided_match(
     point with the best *other* point inside the radius (a point seen by four keyframes
     no longer fails against itself), and a repeated texture elsewhere in the model never
     competes because it is predicted far away. One query per point (the closest) survives.
-    Dense: one descriptor distance matrix (a BLAS product, as cheap as brute-force
-    matching) masked by the pixel distance.
+    Blockwise dense: the queries are grouped in cells of twice the radius, and each cell's
+    descriptor distances (a BLAS product) are computed only to the candidates that can lie
+    within the radius of one of its queries (a fifth of them on the sample: 3x faster
+    than one matrix of every pair, the same matches).
     """
     empty = np.zeros(0, np.int64)
     nq, nc = len(query_px), len(cand_px)
     if nq == 0 or nc == 0:
         return empty, empty
+    cand_point = np.asarray(cand_point)
     if query_desc.dtype == np.uint8:
-        d2 = cv2.batchDistance(query_desc, cand_desc, -1, None, cv2.NORM_HAMMING)[0]
-        d2 = d2.astype(np.float32) ** 2
+        q = c = qn = cn = None
     else:
-        q, c = query_desc.astype(np.float32), cand_desc.astype(np.float32)
-        d2 = q @ c.T
-        d2 *= -2.0
-        d2 += (q * q).sum(1)[:, None]
-        d2 += (c * c).sum(1)[None, :]
-    if np.isfinite(radius_px):
-        qp, cp = np.asarray(query_px, np.float32), np.asarray(cand_px, np.float32)
-        dx, dy = np.subtract.outer(qp[:, 0], cp[:, 0]), np.subtract.outer(qp[:, 1], cp[:, 1])
-        d2[dx * dx + dy * dy > radius_px**2] = np.inf
-    col = np.argmin(d2, axis=1)
-    best = d2[np.arange(nq), col]
-    pt = np.asarray(cand_point)[col]
-    d2[np.asarray(cand_point)[None, :] == pt[:, None]] = np.inf  # other 3D points only
-    second = d2.min(axis=1)
-    keep = np.isfinite(best) & (best < ratio**2 * second)
-    qi, ci, pt, d = np.flatnonzero(keep), col[keep], pt[keep], best[keep]
-    # one query per 3D point: the closest descriptor wins
-    s = np.lexsort((d, pt))
+        q, c = np.asarray(query_desc, np.float32), np.asarray(cand_desc, np.float32)
+        qn, cn = np.einsum("ij,ij->i", q, q), np.einsum("ij,ij->i", c, c)
+    finite = bool(np.isfinite(radius_px))
+    qp, cp = np.asarray(query_px, np.float32), np.asarray(cand_px, np.float32)
+    blocks = _cells(qp, cp, float(radius_px)) if finite else [(slice(None), slice(None))]
+    found = []
+    for qi, ci in blocks:
+        if q is None:
+            xor = query_desc[qi][:, None, :] ^ cand_desc[ci][None, :, :]
+            d2 = np.bitwise_count(xor).sum(axis=2, dtype=np.int32).astype(np.float32) ** 2
+        else:
+            d2 = q[qi] @ c[ci].T
+            d2 *= -2.0
+            d2 += qn[qi][:, None]
+            d2 += cn[ci][None, :]
+        if finite:
+            dx = np.subtract.outer(qp[qi, 0], cp[ci, 0])
+            dy = np.subtract.outer(qp[qi, 1], cp[ci, 1])
+            np.copyto(d2, np.float32(np.inf), where=dx * dx + dy * dy > np.float32(radius_px**2))
+        col = np.argmin(d2, axis=1)
+        best = d2[np.arange(len(d2)), col]
+        pts = cand_point[ci]
+        pt = pts[col]
+        np.copyto(d2, np.float32(np.inf), where=pts[None, :] == pt[:, None])  # other points
+        keep = np.isfinite(best) & (best < ratio**2 * d2.min(axis=1))
+        qidx = np.arange(nq)[qi] if isinstance(qi, slice) else qi
+        cidx = np.arange(nc)[ci] if isinstance(ci, slice) else ci
+        found.append((qidx[keep], cidx[col[keep]], pt[keep], best[keep]))
+    if not found:
+        return empty, empty
+    qi, ci, pt, d = (np.concatenate(x) for x in zip(*found, strict=True))
+    # one query per 3D point: the closest descriptor wins (on a tie, the first query)
+    s = np.lexsort((qi, d, pt))
     qi, ci, pt = qi[s], ci[s], pt[s]
     first = np.ones(len(qi), bool)
     first[1:] = pt[1:] != pt[:-1]
     qi, ci = qi[first], ci[first]
     s = np.argsort(qi)
-    return qi[s], ci[s]
+    return qi[s].astype(np.int64), ci[s].astype(np.int64)
+
+
+def _cells(qp: np.ndarray, cp: np.ndarray, radius: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(query rows, candidate rows) per cell of queries (side 2 * radius): every candidate
+    within `radius` of one of the cell's queries is among its candidate rows."""
+    cell = max(2.0 * radius, 16.0)
+    lo = qp.min(axis=0)
+    key = np.floor((qp - lo) / cell).astype(np.int64)
+    ncx = int(key[:, 0].max()) + 1
+    flat = key[:, 1] * ncx + key[:, 0]
+    order = np.argsort(flat, kind="stable")
+    cells, starts = np.unique(flat[order], return_index=True)
+    ends = np.append(starts[1:], len(qp))
+    by_x = np.argsort(cp[:, 0], kind="stable")
+    xs = cp[by_x, 0]
+    out = []
+    for f, a, b in zip(cells, starts, ends, strict=True):
+        x0 = lo[0] + (f % ncx) * cell - radius
+        y0 = lo[1] + (f // ncx) * cell - radius
+        i, j = np.searchsorted(xs, [x0, x0 + cell + 2 * radius])
+        ci = by_x[i:j]
+        y = cp[ci, 1]
+        ci = np.sort(ci[(y >= y0) & (y <= y0 + cell + 2 * radius)])
+        if len(ci):
+            out.append((order[a:b], ci))
+    return out

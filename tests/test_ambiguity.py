@@ -35,6 +35,45 @@ def test_guided_match_prefers_the_predicted_copy_and_counts_points_not_views():
     assert len(qi) == 0
 
 
+def _all_pairs_match(q_px, q_desc, c_px, c_desc, c_point, radius, ratio=0.8):
+    """guided_match's rule written plainly: every query against every candidate."""
+    if q_desc.dtype == np.uint8:
+        d = np.unpackbits(q_desc[:, None, :] ^ c_desc[None, :, :], axis=2).sum(2) ** 2.0
+    else:
+        d = ((q_desc[:, None, :].astype(float) - c_desc[None, :, :]) ** 2).sum(2)
+    d[np.linalg.norm(q_px[:, None, :] - c_px[None, :, :], axis=2) > radius] = np.inf
+    d = d.astype(np.float32)  # as guided_match compares (Hamming distances hit the ratio)
+    best = {}  # 3D point -> (distance, query, candidate)
+    for i, row in enumerate(d):
+        j = int(np.argmin(row))
+        second = row[c_point != c_point[j]].min(initial=np.inf)
+        if np.isfinite(row[j]) and row[j] < ratio**2 * second:
+            if c_point[j] not in best or row[j] < best[c_point[j]][0]:
+                best[c_point[j]] = (row[j], i, j)
+    pairs = sorted((i, j) for _, i, j in best.values())
+    return [i for i, _ in pairs], [j for _, j in pairs]
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+@pytest.mark.parametrize("radius", [12.0, 40.0, np.inf])
+def test_guided_match_blocks_give_the_all_pairs_matches(dtype, radius):
+    # queries near some candidates, shared points, and distractors spread over 640 x 480
+    rng = np.random.default_rng(7)
+    n_pts = 300
+    pt_desc = rng.uniform(0, 255, (n_pts, 32 if dtype == np.uint8 else 128))
+    c_point = rng.integers(0, n_pts, 900)
+    c_px = rng.uniform(0, [640, 480], (900, 2))
+    c_desc = (pt_desc[c_point] + rng.normal(0, 8, (900, pt_desc.shape[1]))).clip(0, 255)
+    pick = rng.choice(900, 400, replace=False)
+    q_px = c_px[pick] + rng.normal(0, 5, (400, 2))
+    q_desc = (c_desc[pick] + rng.normal(0, 12, (400, pt_desc.shape[1]))).clip(0, 255)
+    q_desc, c_desc = q_desc.astype(dtype), c_desc.astype(dtype)
+    qi, ci = guided_match(q_px, q_desc, c_px, c_desc, c_point, radius)
+    want_q, want_c = _all_pairs_match(q_px, q_desc, c_px, c_desc, c_point, radius)
+    assert len(want_q) > 50
+    assert qi.tolist() == want_q and ci.tolist() == want_c
+
+
 def _scene(n, pose, rng, center):
     X = center + rng.uniform(-0.3, 0.3, (n, 3))
     return X, CAM.project(X, pose) + rng.normal(0, 0.3, (n, 2))

@@ -107,3 +107,22 @@ def test_rootsift_model_tracks_the_orbit(tmp_path):
     pos, rot, rel = errors(est, truth.reset_index())
     assert np.sum((pos > 0.10) | (rot > 5.0)) == 0  # no wrong poses
     assert np.median(rel) <= 0.003 and np.median(rot) <= 0.2
+
+
+def test_orb_model_tracks_the_start_of_the_orbit(tmp_path):
+    """Binary descriptors through guided matching (Hamming distances; once an OpenCV
+    assertion on the first tracked frame)."""
+    model = tmp_path / "o.mirage"
+    p = run_mirage(
+        "-q", "build-model", KF, "--detector", "orb", "--poses", KF / "poses.csv",
+        "--camera", SAMPLE / "camera_truth.yaml", "-o", model,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    csv = tmp_path / "p.csv"
+    p = run_mirage("-q", "track", SAMPLE / "orbit.mp4", "--model", model, "--end", "60", "-o", csv)
+    assert p.returncode == 0, p.stderr
+    est = read_pose_csv(csv)
+    assert (est["status"] == "ok").mean() >= 0.95
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv").set_index("frame").loc[est["frame"]]
+    pos, rot, rel = errors(est, truth.reset_index())
+    assert pos.max() < 0.03 and np.median(rel) <= 0.003 and np.median(rot) <= 0.2
