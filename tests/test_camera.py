@@ -86,6 +86,28 @@ def test_project_undistort_inverse():
     assert np.allclose(rays, X / np.linalg.norm(X, axis=1, keepdims=True), atol=1e-9)
 
 
+@pytest.mark.parametrize(
+    "dist",
+    [
+        [-0.2, 0.07, 0.001, -0.0005],
+        [-0.2, 0.07, 0.001, -0.0005, 0.01],
+        [0.3, -0.1, 0.002, 0.001, 0.02, 0.5, -0.05, 0.01],  # rational
+        [0.1, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.001, 0.0, -0.002, 0.0],  # thin prism
+    ],
+)
+def test_project_is_opencvs_projection(dist):
+    """The numpy projection of the common models is cv2.projectPoints' to the last bit
+    (behind and at depth 0 included), from any pose."""
+    cam = Camera(np.array([[520.0, 0, 321.0], [0, 518.0, 239.5], [0, 0, 1]]), dist, 640, 480)
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-1, 1, (500, 3)) + [0, 0, 2.0]
+    X[:20, 2] *= -1  # behind the camera
+    X[20, 2] = 0.0
+    pose = Pose.from_rvec_tvec(np.array([0.1, -0.3, 0.2]), np.array([0.05, -0.1, 0.3]))
+    want, _ = cv2.projectPoints(X, pose.rvec, pose.t, cam.K, cam.dist)
+    assert np.array_equal(cam.project(X, pose), want.reshape(-1, 2))
+
+
 def test_scaled_camera_keeps_rays():
     cam = make_camera()
     half = cam.scaled(320, 240)
