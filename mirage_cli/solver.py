@@ -398,12 +398,14 @@ def sandwich_covariance(
     w = np.ones(len(X))
     if huber_px is not None:  # the fit's own weights, without its gross-outlier cut
         _k.robust_weights((r * r).sum(1), True, float(huber_px), math.inf, w)
-    H = np.einsum("n,nki,nkj->ij", w, J, J)
+    Jw = J * w[:, None, None]
+    H = Jw.reshape(-1, 6).T @ J.reshape(-1, 6)
     try:
         Hi = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return nan
-    h = np.einsum("n,nki,ij,nlj->nkl", w, J, Hi, J)  # per-point 2x2 leverage
+    h = (Jw @ Hi) @ J.transpose(0, 2, 1)  # per-point 2x2 leverage (matmuls: einsum's
+    # four operands ran 5x slower)
     A = np.eye(2) - h
     det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
     det = np.where(np.abs(det) > 1e-3, det, 1e-3)  # a point that alone fixes a direction
