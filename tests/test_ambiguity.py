@@ -38,9 +38,10 @@ def test_guided_match_prefers_the_predicted_copy_and_counts_points_not_views():
 def _all_pairs_match(q_px, q_desc, c_px, c_desc, c_point, radius, ratio=0.8):
     """guided_match's rule written plainly: every query against every candidate."""
     if q_desc.dtype == np.uint8:
-        d = np.unpackbits(q_desc[:, None, :] ^ c_desc[None, :, :], axis=2).sum(2) ** 2.0
+        d = np.bitwise_count(q_desc[:, None, :] ^ c_desc[None, :, :]).sum(2) ** 2.0
     else:
-        d = ((q_desc[:, None, :].astype(float) - c_desc[None, :, :]) ** 2).sum(2)
+        q, c = q_desc.astype(float), c_desc.astype(float)
+        d = (q * q).sum(1)[:, None] + (c * c).sum(1)[None, :] - 2 * q @ c.T
     d[np.linalg.norm(q_px[:, None, :] - c_px[None, :, :], axis=2) > radius] = np.inf
     d = d.astype(np.float32)  # as guided_match compares (Hamming distances hit the ratio)
     best = {}  # 3D point -> (distance, query, candidate)
