@@ -83,14 +83,20 @@ def test_descriptors_keep_dtype_and_values_through_the_model_file(name, tmp_path
     assert back.recognize(kfs[1].descriptors, top_k=1)[0][0] == 1
 
 
-def test_rootsift_model_tracks_the_orbit(tmp_path):
-    """`--detector rootsift` end to end: as accurate as SIFT (test_track's thresholds)."""
-    model = tmp_path / "r.mirage"
+def _sample_model(tmp_path, detector: str):
+    """`mirage build-model` of the sample keyframes with this detector."""
+    model = tmp_path / f"{detector}.mirage"
     p = run_mirage(
-        "-q", "build-model", KF, "--detector", "rootsift", "--poses", KF / "poses.csv",
+        "-q", "build-model", KF, "--detector", detector, "--poses", KF / "poses.csv",
         "--camera", SAMPLE / "camera_truth.yaml", "-o", model,
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
+    return model
+
+
+def test_rootsift_model_tracks_the_orbit(tmp_path):
+    """`--detector rootsift` end to end: as accurate as SIFT (test_track's thresholds)."""
+    model = _sample_model(tmp_path, "rootsift")
     m = LandmarkModel.load(model)
     assert m.detector.name == "rootsift" and len(m.points) > 3000
     d = m.keyframes[0].descriptors
@@ -112,12 +118,7 @@ def test_rootsift_model_tracks_the_orbit(tmp_path):
 def test_orb_model_tracks_the_start_of_the_orbit(tmp_path):
     """Binary descriptors through guided matching (Hamming distances; once an OpenCV
     assertion on the first tracked frame)."""
-    model = tmp_path / "o.mirage"
-    p = run_mirage(
-        "-q", "build-model", KF, "--detector", "orb", "--poses", KF / "poses.csv",
-        "--camera", SAMPLE / "camera_truth.yaml", "-o", model,
-    )  # fmt: skip
-    assert p.returncode == 0, p.stderr
+    model = _sample_model(tmp_path, "orb")
     csv = tmp_path / "p.csv"
     p = run_mirage("-q", "track", SAMPLE / "orbit.mp4", "--model", model, "--end", "60", "-o", csv)
     assert p.returncode == 0, p.stderr
