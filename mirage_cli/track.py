@@ -214,6 +214,8 @@ class Tracker:
         # kind 'box' (the next regular detection), 'probe' or 'full' (a lost frame's search)
         self._pending: dict[tuple[int, str], Future] = {}
         self._bg_detector = None  # the worker's own detector object
+        # the next regular detection's job, held until the frame after a detection flows
+        self._held_box: tuple | None = None
         # where to detect while tracking: where the model has points (a subsample suffices;
         # the ground near the landmark steadies the pose, so it counts)
         P = model.points
@@ -260,9 +262,13 @@ class Tracker:
             self.lost_run = 0
             if res.mode != "flow":
                 self._detect_ahead(ahead, gray.shape)
+            elif self._held_box is not None:
+                self._start(*self._held_box)
+                self._held_box = None
         else:
             self.lost_run += 1
             self._drop("box")
+            self._held_box = None
             self.track_px = self.track_X = self.track_land = None
             self.velocity = None
             if self.lost_run > 3:
@@ -349,8 +355,12 @@ class Tracker:
         the worker thread, in the box that covers the model both where it is now and where
         the constant-velocity prediction puts it then (a box too small to detect without
         upsampling, a far landmark, is left to its own frame: its scale must come from
-        the box that frame predicts)."""
+        the box that frame predicts). The job starts once the next frame has flowed: the
+        flow's deviation check asks for a detection mostly right there (the velocity then
+        spans the jump from the flowed poses to the detected one), which would leave the
+        features unused, their time taken from that detection (sample orbit: 25 of 31)."""
         self._drop("box")
+        self._held_box = None
         k = self.lookahead
         if not k or len(ahead) < k or ahead[k - 1] is None or ahead[k - 1].shape != shape:
             return
@@ -361,7 +371,7 @@ class Tracker:
             if max(b2 - b0, b3 - b1, a2 - a0, a3 - a1) < self.s.upsample_below_px:
                 return
             box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3))
-        self._start(self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
+        self._held_box = (self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
 
     def _search_ahead(self, ahead) -> None:
         """Lost with nothing to predict from: the next frame, if this one stays lost, is
