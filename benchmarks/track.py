@@ -46,11 +46,14 @@ from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
+from mirage_cli.runtime import keep_freed_memory  # noqa: E402
 from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.solver import METHODS  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
 from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
+
+keep_freed_memory()  # as `mirage track` runs (every system here gets it: one process)
 
 SAMPLE = ROOT / "sample_data"
 IN_VIEW = 0.3  # share of the landmark inside the image for a frame to count as "in view"

@@ -10,7 +10,7 @@ import click
 import cv2
 import numpy as np
 
-from . import refine, signals, track, ui
+from . import refine, runtime, signals, track, ui
 from .camera import Camera
 from .cli_options import (
     camera_option,
@@ -201,6 +201,7 @@ def track_to_files(
     if not refine.cached_on_disk():
         ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
     warm_up()  # compile or load it before the first frame's clock starts
+    runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
     points = tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
     outputs = [(output, "csv")] + [(path, fmt) for fmt, path in (also or {}).items() if path]
