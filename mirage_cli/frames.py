@@ -333,6 +333,21 @@ class FrameSource:
             cap.release()
 
 
+def gray_frames(frames: Iterator[Frame]) -> Iterator[Frame]:
+    """`frames` with colour images turned gray: for a consumer that only tracks, done where
+    the frames are decoded (a thread of `prefetch`'s), not on the tracking thread (0.24 s
+    of the sample orbit's 540 frames)."""
+    try:
+        for f in frames:
+            if f.image is not None and f.image.ndim == 3:
+                f = f._replace(image=cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY))
+            yield f
+    finally:
+        close = getattr(frames, "close", None)
+        if close is not None:
+            close()
+
+
 def prefetch(frames: Iterator[Frame], depth: int = 4) -> Iterator[Frame]:
     """`frames`, decoded ahead in a thread of their own.
 

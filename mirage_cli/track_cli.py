@@ -28,7 +28,7 @@ from .fileio import (
     require_file,
     video_frames_written,
 )
-from .frames import FrameSource, matching_camera, prefetch, with_topic
+from .frames import FrameSource, gray_frames, matching_camera, prefetch, with_topic
 from .model import LandmarkModel
 from .plotting import draw_overlay
 from .smooth import Smoother, SmoothSettings
@@ -240,7 +240,9 @@ def _track(
         if rerun:
             rrd = stack.enter_context(TrackRecording(rerun, tracker.model, camera))
         bar = stack.enter_context(ui.progress(total, "tracking"))
-        frames = prefetch(src.frames(first, last, every))
+        keep = ov is not None or rrd is not None  # the overlays draw on the colour image
+        frames = src.frames(first, last, every)
+        frames = prefetch(frames if keep else gray_frames(frames))
 
         def emit(records):
             for rec in records:
@@ -256,7 +258,6 @@ def _track(
                     bar.update(10, f"{rate:.0f} frames/s")
 
         try:
-            keep = ov is not None or rrd is not None
             for rec in track.run(frames, tracker, keep_images=keep):
                 emit(smoother.push(rec))
             with signals.deferred():  # the last frames held back by the smoother

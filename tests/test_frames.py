@@ -12,7 +12,14 @@ from conftest import SAMPLE, assert_one_line_error
 
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
-from mirage_cli.frames import Frame, FrameSource, matching_camera, name_times, prefetch
+from mirage_cli.frames import (
+    Frame,
+    FrameSource,
+    gray_frames,
+    matching_camera,
+    name_times,
+    prefetch,
+)
 
 
 def orbit_frames(folder: Path, names: list[str], first: int = 0) -> list[Path]:
@@ -118,6 +125,31 @@ def test_prefetch_keeps_order_and_raises_where_the_error_was():
         for f in prefetch(reader(), depth=2):
             got.append(f.index)
     assert got == [0, 1, 2, 3, 4]
+
+
+def test_gray_frames_in_the_decoding_thread_are_the_trackers_gray():
+    """`mirage track` without overlays grays the frames where they are decoded: the same
+    pixels the tracking loop computed itself; gray and undecodable frames pass as they are;
+    closing it early closes the reader."""
+    colour = [f for f in itertools.islice(FrameSource([SAMPLE / "orbit.mp4"]).frames(), 3)]
+    mono = Frame(3, 3, 0.1, colour[0].image[..., 1].copy())
+    closed = threading.Event()
+
+    def reader():
+        try:
+            yield from [*colour, mono, Frame(4, 4, 0.13, None)]
+            yield from (Frame(i, i, i / 30, None) for i in itertools.count(5))
+        finally:
+            closed.set()
+
+    frames = prefetch(gray_frames(reader()), depth=2)
+    got = [next(frames) for _ in range(5)]
+    for f, c in zip(got, colour, strict=False):
+        assert f.index == c.index
+        assert np.array_equal(f.image, cv2.cvtColor(c.image, cv2.COLOR_BGR2GRAY))
+    assert got[3].image is mono.image and got[4].image is None
+    frames.close()
+    assert closed.wait(5.0)
 
 
 def test_prefetch_closed_early_stops_and_closes_the_reader():
