@@ -186,6 +186,8 @@ class Tracker:
     match consistent with it.
     """
 
+    PREDICT_LOST = 3  # lost frames in a row that are still searched around the last pose
+
     def __init__(self, model: LandmarkModel, camera: Camera, settings: TrackSettings):
         self.model, self.camera, self.s = model, camera, settings
         self.detector = make_detector(model.detector)
@@ -236,7 +238,9 @@ class Tracker:
         self._uncertain_pose = None
         self._frame_no += 1
         self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
-        if self.prev_pose is None and self.hint is None:
+        if (self.prev_pose is None and self.hint is None) or (
+            self.prev_pose is not None and self.lost_run > 0
+        ):
             self._search_ahead(ahead)
         if (
             self.s.flow
@@ -260,6 +264,7 @@ class Tracker:
                 self.velocity = None
             self.prev_pose = res.pose
             self.lost_run = 0
+            self._drop("full", "probe", "lostbox")  # found: the searches queued are moot
             if res.mode != "flow":
                 self._detect_ahead(ahead, gray.shape)
             elif self._held_box is not None:
@@ -271,7 +276,7 @@ class Tracker:
             self._held_box = None
             self.track_px = self.track_X = self.track_land = None
             self.velocity = None
-            if self.lost_run > 3:
+            if self.lost_run > self.PREDICT_LOST:
                 self.prev_pose = None  # too long: recognise globally again
         # a pose too vague to write still says where to look in the next frame
         self.hint = self._uncertain_pose if res.status == Status.UNCERTAIN else None
@@ -374,19 +379,33 @@ class Tracker:
         self._held_box = (self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
 
     def _search_ahead(self, ahead) -> None:
-        """Lost with nothing to predict from: the next frame, if this one stays lost, is
-        searched the same way (the whole frame or the half-size probe, by `lost_run`), so
-        its features are detected on the worker while this frame is matched."""
-        if not self.lookahead or not ahead or ahead[0] is None:
-            return
-        kind = self._search(self.lost_run + 1)
-        if kind is not None:
-            fn = self._probe_features if kind == "probe" else detect
-            self._start(self._frame_no + 1, kind, fn, ahead[0])
+        """Lost: the coming frames, if they stay lost, are searched as `lost_run` says (in
+        the box of the last pose while it is kept, then the whole frame or the half-size
+        probe), so their features are queued on the worker, as far ahead as the frames
+        are decoded, and detected while this frame is matched. What is searched depends
+        on the frames and the last pose alone; a frame that is not processed
+        (undecodable) does not count."""
+        n = 0
+        for gray in ahead[: self.lookahead]:
+            if gray is None:
+                continue
+            n += 1
+            lost_run, frame_no = self.lost_run + n, self._frame_no + n
+            if self.prev_pose is not None and lost_run <= self.PREDICT_LOST:
+                box = self._model_box(self.prev_pose, gray.shape)  # no velocity while lost
+                if box is not None and (frame_no, "lostbox") not in self._pending:
+                    self._start(frame_no, "lostbox", self._box_features, gray, box)
+                    self._pending[frame_no, "lostbox"].box = box
+            kind = self._search(lost_run)
+            if kind is not None and (frame_no, kind) not in self._pending:
+                fn = self._probe_features if kind == "probe" else detect
+                self._start(frame_no, kind, fn, gray)
 
-    def _drop(self, kind: str) -> None:
-        """Forget the features of that kind detected ahead (the plan changed)."""
-        self._pending = {k: f for k, f in self._pending.items() if k[1] != kind}
+    def _drop(self, *kinds: str) -> None:
+        """Forget the features of those kinds detected ahead (the plan changed); those not
+        started yet are not detected at all."""
+        for key in [k for k in self._pending if k[1] in kinds]:
+            self._pending.pop(key).cancel()
 
     def _start(self, frame_no: int, kind: str, fn, gray, *args) -> None:
         if self._bg_detector is None:
@@ -433,6 +452,9 @@ class Tracker:
         pred = self._predicted()
         box = self._model_box(pred, gray.shape) if pred is not None else None
         early = self._pending.pop((self._frame_no, "box"), None) if pred is not None else None
+        if early is None and box is not None:  # searched ahead in this box, while lost?
+            early = self._pending.pop((self._frame_no, "lostbox"), None)
+            early = early if early is not None and early.box == box else None
         if early is not None or box is not None:  # tracking: where the model is predicted
             if early is not None:
                 kps, desc = early.result()

@@ -2,6 +2,7 @@
 
 import shutil
 import time
+from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import cv2
@@ -330,6 +331,30 @@ def test_detection_ahead_gives_the_serial_run_poses(sample_model, monkeypatch):
         assert a.keyframe == b.keyframe
         if a.ok:
             assert np.array_equal(a.pose.R, b.pose.R) and np.array_equal(a.pose.t, b.pose.t)
+
+
+def test_lost_frames_are_searched_ahead_on_the_worker(sample_model, monkeypatch):
+    """From the third frame of a lost stretch on, every frame's search (in the last pose's
+    box while it is kept, then the whole frame or the probe) was queued on the worker
+    while earlier frames were matched: the tracking thread detects nothing itself."""
+    model = LandmarkModel.load(sample_model)
+    frames = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(415, 450))  # look-away at 427
+    tracker = Tracker(model, model.camera, TrackSettings())
+    here = Counter()  # frame -> detections on the tracking thread
+    detect = track.detect
+
+    def counted(gray, detector, *args):
+        if detector is tracker.detector:
+            here[tracker._frame_no] += 1
+        return detect(gray, detector, *args)
+
+    monkeypatch.setattr(track, "detect", counted)
+    recs = list(track.run(iter(frames), tracker))
+    lost = [str(r.status) == "lost" for r in recs]
+    first = lost.index(True)
+    assert all(lost[first:]) and len(recs) - first >= 20
+    assert here[first] >= 1  # the first lost frame could not be foreseen
+    assert sum(here[i] for i in range(first + 2, len(recs))) == 0
 
 
 def test_a_forked_child_tracks_with_a_worker_of_its_own(sample_model):
