@@ -258,6 +258,10 @@ class Tracker:
         if res.measurement is not None:  # flowed points share their anchor's errors
             res.measurement.anchor = self._anchor_no if res.mode == "flow" else self._frame_no
         if res.ok:
+            calm = False  # a detection near its prediction: no flow check will doubt it
+            if res.mode != "flow" and self.velocity is not None and self.lost_run == 0:
+                dev = res.pose.distance_to(self._predicted()) / sigmas(res.measurement.cov)[0]
+                calm = dev < self.s.flow_max_dev_sigma - 1
             if self.prev_pose is not None and self.lost_run == 0:
                 self.velocity = res.pose @ self.prev_pose.inverse()
             else:
@@ -266,7 +270,7 @@ class Tracker:
             self.lost_run = 0
             self._drop("full", "probe", "lostbox")  # found: the searches queued are moot
             if res.mode != "flow":
-                self._detect_ahead(ahead, gray.shape)
+                self._detect_ahead(ahead, gray.shape, calm)
             elif self._held_box is not None:
                 self._start(*self._held_box)
                 self._held_box = None
@@ -354,16 +358,18 @@ class Tracker:
             res.inlier_px = self.track_px
         return res
 
-    def _detect_ahead(self, ahead, shape) -> None:
+    def _detect_ahead(self, ahead, shape, calm: bool = False) -> None:
         """A frame was just detected: if flow holds, the next detection comes
         `redetect_every` + 1 frames later, so start detecting that frame's features now, on
         the worker thread, in the box that covers the model both where it is now and where
         the constant-velocity prediction puts it then (a box too small to detect without
         upsampling, a far landmark, is left to its own frame: its scale must come from
-        the box that frame predicts). The job starts once the next frame has flowed: the
-        flow's deviation check asks for a detection mostly right there (the velocity then
-        spans the jump from the flowed poses to the detected one), which would leave the
-        features unused, their time taken from that detection (sample orbit: 25 of 31)."""
+        the box that frame predicts). Unless this detection was `calm` (within
+        `flow_max_dev_sigma` - 1 sigmas of its prediction), the job starts only once the
+        next frame has flowed: the flow's deviation check asks for a detection mostly right
+        there (the velocity then spans the jump from the flowed poses to the detected one),
+        which would leave the features unused, their time taken from that detection
+        (sample orbit: 25 of 31; a calm detection was followed by one of them)."""
         self._drop("box")
         self._held_box = None
         k = self.lookahead
@@ -377,6 +383,9 @@ class Tracker:
                 return
             box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3))
         self._held_box = (self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
+        if calm:
+            self._start(*self._held_box)
+            self._held_box = None
 
     def _search_ahead(self, ahead) -> None:
         """Lost: the coming frames, if they stay lost, are searched as `lost_run` says (in
