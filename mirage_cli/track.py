@@ -260,8 +260,10 @@ class Tracker:
         if res.ok:
             calm = False  # a detection near its prediction: no flow check will doubt it
             if res.mode != "flow" and self.velocity is not None and self.lost_run == 0:
-                dev = res.pose.distance_to(self._predicted()) / sigmas(res.measurement.cov)[0]
-                calm = dev < self.s.flow_max_dev_sigma - 1
+                sigma = max(sigmas(res.measurement.cov)[0], 1e-9)
+                calm = res.pose.distance_to(self._predicted()) / sigma < (
+                    self.s.flow_max_dev_sigma - 1
+                )
             if self.prev_pose is not None and self.lost_run == 0:
                 self.velocity = res.pose @ self.prev_pose.inverse()
             else:
