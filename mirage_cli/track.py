@@ -6,10 +6,10 @@ inliers followed with pyramidal Lucas-Kanade from the frame they were detected i
 their 3D points, then Mirage-S from the previous pose). Flow costs a few milliseconds where
 detection costs tens, so detection runs only every `redetect_every` frames, when the flow
 weakens or when a flowed pose leaves the prediction. The costly part of a detection, the
-features, is mostly known in advance and runs on the second core: as soon as a frame is
+features, is mostly known in advance and runs on the second core: once a frame is
 detected, the features of the frame `redetect_every` + 1 later (in the box its pose
-predicts), while the frames between are flowed; and while lost, the next frame's search
-while this one is matched. What is detected, and where, depends on the frames alone,
+predicts), while the frames between are flowed; and while lost, the coming frames'
+searches while this one is matched. What is detected, and where, depends on the frames alone,
 never on timing, so a run gives the same poses however the threads are scheduled. Every
 pose ends in the same gate, so a frame without enough consistent evidence on the landmark
 itself, or whose honest uncertainty is too large, is not `ok`: never a guess.
@@ -213,7 +213,8 @@ class Tracker:
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
         self._uncertain_pose: Pose | None = None
         # features of coming frames being detected on the worker: (frame, kind) -> Future,
-        # kind 'box' (the next regular detection), 'probe' or 'full' (a lost frame's search)
+        # kind 'box' (the next regular detection), 'lostbox', 'probe' or 'full' (a lost
+        # frame's search: in the last pose's box, the half-size probe, the whole frame)
         self._pending: dict[tuple[int, str], Future] = {}
         self._bg_detector = None  # the worker's own detector object
         # the next regular detection's job, held until the frame after a detection flows
