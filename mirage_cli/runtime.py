@@ -3,9 +3,10 @@
 OpenCV allocates each detection's image pyramid afresh (an upsampled box is tens of MB)
 and frees it again. glibc serves blocks that large straight from the kernel and gives
 freed memory back above a small threshold, so every detection paid for the same pages
-again: the sample orbit took 540 000 page faults and 1.6 s of kernel time, a sixth of
-the tracking's CPU. Keeping freed memory in the heap makes that about 2 000 faults and
-0.4 s, for some 40 MB more resident memory at the peak.
+again: the sample orbit's tracking loop took 525 000-546 000 page faults and 1.5-1.8 s
+of kernel time, about an eighth of its CPU. Keeping freed memory in the heap makes that
+about 2 000 faults and 0.4 s, for 20-45 MB more resident memory at the peak (the command,
+the in-process loop).
 """
 
 from __future__ import annotations

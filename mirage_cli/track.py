@@ -171,6 +171,11 @@ def _forget_worker() -> None:
 os.register_at_fork(after_in_child=_forget_worker)
 
 
+def _deviation(res: FrameRecord, pred: Pose) -> float:
+    """How far a pose is from its prediction, in the position sigmas of its residuals."""
+    return res.pose.distance_to(pred) / max(sigmas(res.measurement.cov)[0], 1e-9)
+
+
 class Tracker:
     """Stateful per-frame tracker; feed frames in order with `process(gray)`.
 
@@ -259,12 +264,11 @@ class Tracker:
         if res.measurement is not None:  # flowed points share their anchor's errors
             res.measurement.anchor = self._anchor_no if res.mode == "flow" else self._frame_no
         if res.ok:
-            calm = False  # a detection near its prediction: no flow check will doubt it
-            if res.mode != "flow" and self.velocity is not None and self.lost_run == 0:
-                sigma = max(sigmas(res.measurement.cov)[0], 1e-9)
-                calm = res.pose.distance_to(self._predicted()) / sigma < (
-                    self.s.flow_max_dev_sigma - 1
-                )
+            # a detection near its prediction: the next frame's flow check will not doubt it
+            calm = (
+                res.mode != "flow" and self.velocity is not None and self.lost_run == 0
+                and _deviation(res, self._predicted()) < self.s.flow_max_dev_sigma - 1
+            )  # fmt: skip
             if self.prev_pose is not None and self.lost_run == 0:
                 self.velocity = res.pose @ self.prev_pose.inverse()
             else:
@@ -349,9 +353,7 @@ class Tracker:
             # points that slid along an edge bend the pose while the residuals stay small;
             # a smooth path predicts the pose well, so a flowed pose far from the
             # prediction (in the sigmas of its residuals) is checked by a detection
-            sigma_res = sigmas(res.measurement.cov)[0]
-            dev = est.pose.distance_to(pred) / max(sigma_res, 1e-9)
-            if dev > self.s.flow_max_dev_sigma:
+            if _deviation(res, pred) > self.s.flow_max_dev_sigma:
                 return None
         if res.ok:
             self.since_detect += 1
@@ -397,15 +399,19 @@ class Tracker:
         are decoded, and detected while this frame is matched. What is searched depends
         on the frames and the last pose alone; a frame that is not processed
         (undecodable) does not count."""
-        n = 0
+        n, box = 0, None
         for gray in ahead[: self.lookahead]:
             if gray is None:
                 continue
             n += 1
             lost_run, frame_no = self.lost_run + n, self._frame_no + n
-            if self.prev_pose is not None and lost_run <= self.PREDICT_LOST:
-                box = self._model_box(self.prev_pose, gray.shape)  # no velocity while lost
-                if box is not None and (frame_no, "lostbox") not in self._pending:
+            if (
+                self.prev_pose is not None and lost_run <= self.PREDICT_LOST
+                and (frame_no, "lostbox") not in self._pending
+            ):  # fmt: skip
+                if box is None:  # no velocity while lost: the same box for every frame
+                    box = self._model_box(self.prev_pose, gray.shape) or ()
+                if box:
                     self._start(frame_no, "lostbox", self._box_features, gray, box)
                     self._pending[frame_no, "lostbox"].box = box
             kind = self._search(lost_run)
