@@ -33,9 +33,11 @@ import time
 from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 
 from .pose import Pose, rodrigues_many, rotvecs
 from .solver import sigmas
@@ -94,49 +96,59 @@ _A = np.hstack([np.eye(6), -2 * np.eye(6), np.eye(6)])  # second difference of 3
 GN_STEPS = 1  # corrections are millimetres and tenths of a degree: a second step moves
 # the 4 m orbit's median error by 0.0003% of range and costs 1.2 ms a frame
 _BAND = 17  # H couples frames two apart: 6 x 2 + 5 sub-diagonals
+_pbsv, _pbtrs = scipy.linalg.lapack.dpbsv, scipy.linalg.lapack.dpbtrs
 
 
-def _banded(H: np.ndarray) -> np.ndarray:
-    n = len(H)
-    ab = np.zeros((_BAND + 1, n))
-    for d in range(min(_BAND + 1, n)):
-        ab[d, : n - d] = np.diagonal(H, -d)
-    return ab
+@lru_cache(maxsize=8)
+def _band_layout(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the lower triangle of H's blocks goes in LAPACK's lower band storage (row
+    d, column i holds H[i + d, i]): the block (r + o, r) at blocks[r, o] (o = 0, 1, 2,
+    frames apart), as flat (source, band row, band column) index arrays for n frames."""
+    r, o, a, b = (x.ravel() for x in np.meshgrid(
+        np.arange(n), np.arange(3), np.arange(6), np.arange(6), indexing="ij"))  # fmt: skip
+    d = 6 * o + a - b
+    keep = (r + o < n) & (d >= 0)
+    src = np.ravel_multi_index((r, o, a, b), (n, 3, 6, 6))[keep]
+    return src, d[keep], (6 * r + b)[keep]
 
 
-def _residuals(meas, use, R, c) -> np.ndarray:
-    """(theta, c) of the measurements `use` against the window's poses R, c: (len(use), 6)."""
-    dR = np.stack([meas[j].R_wc for j in use]) @ R[use].transpose(0, 2, 1)
-    return np.concatenate([rotvecs(dR), np.stack([meas[j].center for j in use]) - c[use]], axis=1)
+def _residuals(Rm, cm, R, c) -> np.ndarray:
+    """(theta, c) of measurements (R_wc, centre) against the window's poses R, c at their
+    frames: (len(Rm), 6)."""
+    dR = Rm @ R.transpose(0, 2, 1)
+    return np.concatenate([rotvecs(dR), cm - c], axis=1)
 
 
-def _step(idx, meas, R, c, info, prior, drop):
-    """Gauss-Newton step of the window: corrections (n, 6) and the banded information."""
+def _step(use, Rm, cm, W, R, c, prior, P):
+    """Gauss-Newton step of the window (measurements at frames `use`, their information
+    W): corrections (n, 6) and the Cholesky factor of the banded information, or None.
+
+    H is assembled block-banded (each frame's block and its couplings one and two frames
+    on), the prior's blocks added in the order of the dense assembly it replaces."""
     n = len(R)
-    H = np.zeros((6 * n, 6 * n))
-    g = np.zeros(6 * n)
-    use = [j for j in idx if j not in drop]
-    z = _residuals(meas, use, R, c)
-    H4, g2 = H.reshape(n, 6, n, 6), g.reshape(n, 6)  # views: block (i, j) is H4[i, :, j]
-    W = np.stack([info[j] for j in use])
-    H4[use, :, use, :] += W
+    g2 = np.zeros((n, 6))
+    z = _residuals(Rm, cm, R[use], c[use])
+    blocks = np.zeros((n, 3, 6, 6))  # (frame r, o frames on): H's block (r + o, r)
+    blocks[use, 0] += W
     g2[use] += np.einsum("nij,nj->ni", W, z)
     if n >= 3:
         inc = rotvecs(R[1:] @ R[:-1].transpose(0, 2, 1))  # (n-1, 3)
         a = np.concatenate([inc[1:] - inc[:-1], c[2:] - 2 * c[1:-1] + c[:-2]], axis=1)
-        P = (_A.T @ prior @ _A).reshape(3, 6, 3, 6)
         ga = (-(a @ prior) @ _A).reshape(-1, 3, 6)  # (n-2, 3 frames, 6)
-        first = np.arange(n - 2)
         for u in range(3):
-            g2[first + u] += ga[:, u]
-            for v in range(3):
-                H4[first + u, :, first + v, :] += P[u, :, v, :]
-    ab = _banded(H)
-    try:
-        d = scipy.linalg.solveh_banded(ab, g, lower=True)
-    except (np.linalg.LinAlgError, ValueError):
+            g2[u : n - 2 + u] += ga[:, u]
+        # each triple i, i+1, i+2 adds P[u, v] to the block (i + u, i + v); u >= v here
+        for u, v in ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2)):
+            blocks[v : n - 2 + v, u - v] += P[u, :, v, :]
+    src, row, col = _band_layout(n)
+    ab = np.zeros((_BAND + 1, 6 * n))
+    ab[row, col] = blocks.ravel()[src]
+    if not (np.all(np.isfinite(ab)) and np.all(np.isfinite(g2))):
         return None, None
-    return d.reshape(n, 6), ab
+    factor, d, info = _pbsv(ab, g2.ravel(), lower=1)
+    if info != 0:
+        return None, None
+    return d.reshape(n, 6), factor
 
 
 def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings):
@@ -149,48 +161,53 @@ def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings)
     runs: dict[int, int] = {}
     for j in idx:
         runs[window[j].anchor] = runs.get(window[j].anchor, 0) + 1
-    meas = {j: window[j] for j in idx}
-    info = {j: window[j].info / runs[window[j].anchor] for j in idx}
+    meas = [window[j] for j in idx]
+    Rm = np.stack([m.R_wc for m in meas])
+    cm = np.stack([m.center for m in meas])
+    info_raw = np.stack([m.info for m in meas])
+    info = info_raw / np.array([runs[m.anchor] for m in meas], float)[:, None, None]
     # reference: the poses, frames without one interpolated between their neighbours
     n = len(window)
     R0 = np.zeros((n, 3, 3))
     c0 = np.zeros((n, 3))
-    R0[idx] = np.stack([meas[j].R_wc for j in idx])
-    c0[idx] = np.stack([meas[j].center for j in idx])
+    R0[idx] = Rm
+    c0[idx] = cm
     for j in set(range(n)) - set(idx):  # the window starts and ends with a pose
-        after = idx[int(np.searchsorted(idx, j))]
-        before = idx[int(np.searchsorted(idx, j)) - 1]
+        ia = int(np.searchsorted(idx, j))
+        after, before = idx[ia], idx[ia - 1]
         f = (j - before) / (after - before)
-        mb, ma = meas[before], meas[after]
+        mb, ma = meas[ia - 1], meas[ia]
         R0[j] = rodrigues_many(f * rotvecs(ma.R_wc @ mb.R_wc.T)) @ mb.R_wc
         c0[j] = (1 - f) * mb.center + f * ma.center
     q_rot = np.radians(s.ang_accel_deg_s2) ** 2 * dt**3
     q_pos = s.accel_m_s2**2 * dt**3
     prior = np.diag([1 / q_rot] * 3 + [1 / q_pos] * 3)
-    drop: set[int] = set()
+    P = (_A.T @ prior @ _A).reshape(3, 6, 3, 6)
+    kept = np.ones(len(idx), bool)  # measurements not dropped as outliers
+    frames = np.array(idx)
     while True:  # drop outliers, the worst first, until every pose fits
         R, c = R0.copy(), c0.copy()
+        use = frames[kept]
         for _it in range(GN_STEPS):
-            d, ab = _step(idx, meas, R, c, info, prior, drop)
+            d, factor = _step(use, Rm[kept], cm[kept], info[kept], R, c, prior, P)
             if d is None:
                 return None
             R = rodrigues_many(d[:, :3]) @ R
             c = c + d[:, 3:]
-        use = [j for j in idx if j not in drop]
-        r = _residuals(meas, use, R, c)
-        m2 = np.einsum("ni,nij,nj->n", r, np.stack([meas[j].info for j in use]), r)
+        r = _residuals(Rm[kept], cm[kept], R[use], c[use])
+        m2 = np.einsum("ni,nij,nj->n", r, info_raw[kept], r)
         worst = int(np.argmax(m2))
         if m2[worst] <= s.outlier_chi2:
             break
         if use[worst] == k or len(use) <= 2:
             return None
-        drop.add(use[worst])
+        kept[np.flatnonzero(kept)[worst]] = False
     E = np.zeros((6 * n, 6))
     E[6 * k : 6 * k + 6] = np.eye(6)
-    try:
-        cov = scipy.linalg.solveh_banded(ab, E, lower=True)[6 * k : 6 * k + 6]
-    except (np.linalg.LinAlgError, ValueError):
+    cov, info_ = _pbtrs(factor, E, lower=1)
+    if info_ != 0:
         return None
+    cov = cov[6 * k : 6 * k + 6]
     R_cw = R[k].T
     return Pose(R_cw, -R_cw @ c[k]), (cov + cov.T) / 2
 

@@ -7,9 +7,17 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+import scipy.linalg
 
 from mirage_cli.pose import Pose, look_at, rodrigues, rodrigues_many, rotvec, rotvecs
-from mirage_cli.smooth import Smoother, SmoothSettings, run, world_covariance
+from mirage_cli.smooth import (
+    _BAND,
+    Smoother,
+    SmoothSettings,
+    _band_layout,
+    run,
+    world_covariance,
+)
 from mirage_cli.trajectory import FrameRecord, Measurement, Status
 
 FPS = 30.0
@@ -198,3 +206,29 @@ def test_an_interrupt_writes_the_frames_the_smoother_held(sample_model, tmp_path
     rows = read_pose_csv(out)
     assert rows["frame"].astype(int).tolist() == list(range(30))
     assert (rows["status"] == "ok").all()
+
+
+@pytest.mark.parametrize("n", [2, 3, 31])
+def test_the_band_layout_puts_each_block_where_the_dense_matrix_has_it(n):
+    """The smoother assembles its information matrix straight into LAPACK's lower band
+    storage (row d, column i: H[i + d, i]); the same blocks placed in a dense matrix give
+    the same band, and the band's solve the dense solve."""
+    rng = np.random.default_rng(n)
+    blocks = rng.normal(size=(n, 3, 6, 6))
+    blocks[:, 0] = blocks[:, 0] @ blocks[:, 0].transpose(0, 2, 1) + 40 * np.eye(6)
+    H = np.zeros((6 * n, 6 * n))
+    for r in range(n):
+        for o in range(3):
+            if r + o < n:
+                H[6 * (r + o) : 6 * (r + o) + 6, 6 * r : 6 * r + 6] = blocks[r, o]
+    H = np.tril(H) + np.tril(H, -1).T
+    src, row, col = _band_layout(n)
+    ab = np.zeros((_BAND + 1, 6 * n))
+    ab[row, col] = blocks.ravel()[src]
+    for d in range(_BAND + 1):
+        want = np.diagonal(H, -d) if d < 6 * n else []
+        np.testing.assert_array_equal(ab[d, : len(want)], want)
+        assert not ab[d, len(want) :].any()
+    g = rng.normal(size=6 * n)
+    np.testing.assert_allclose(scipy.linalg.solveh_banded(ab, g, lower=True),
+                               np.linalg.solve(H, g), rtol=1e-9)  # fmt: skip
