@@ -240,6 +240,7 @@ def guided_match(
     else:
         q, c = np.asarray(query_desc, np.float32), np.asarray(cand_desc, np.float32)
         qn, cn = np.einsum("ij,ij->i", q, q), np.einsum("ij,ij->i", c, c)
+        q = q * np.float32(-2.0)  # exact: (-2 q) . c is -2 (q . c) to the bit
     finite = bool(np.isfinite(radius_px))
     qp, cp = np.asarray(query_px, np.float32), np.asarray(cand_px, np.float32)
     blocks = _cells(qp, cp, float(radius_px)) if finite else [(np.arange(nq), np.arange(nc))]
@@ -250,7 +251,6 @@ def guided_match(
             d2 = np.bitwise_count(xor).sum(axis=2, dtype=np.int32).astype(np.float32) ** 2
         else:
             d2 = q[qi] @ c[ci].T
-            d2 *= -2.0
             d2 += qn[qi][:, None]
             d2 += cn[ci][None, :]
         if finite:
@@ -286,18 +286,22 @@ def _cells(qp: np.ndarray, cp: np.ndarray, radius: float) -> list[tuple[np.ndarr
     ncx = int(key[:, 0].max()) + 1
     flat = key[:, 1] * ncx + key[:, 0]
     order = np.argsort(flat, kind="stable")
-    cells, starts = np.unique(flat[order], return_index=True)
+    _, starts = np.unique(flat[order], return_index=True)
     ends = np.append(starts[1:], len(qp))
     by_x = np.argsort(cp[:, 0], kind="stable")
     xs = cp[by_x, 0]
     out = []
-    for f, a, b in zip(cells, starts, ends, strict=True):
-        x0 = lo[0] + (f % ncx) * cell - radius
-        y0 = lo[1] + (f // ncx) * cell - radius
-        i, j = np.searchsorted(xs, [x0, x0 + cell + 2 * radius])
+    # each cell's candidates: within `radius` of the box its queries span
+    reach = radius + 1.0  # a pixel more: float32 rounding never drops a candidate
+    q_lo = np.minimum.reduceat(qp[order], starts) - reach
+    q_hi = np.maximum.reduceat(qp[order], starts) + reach
+    i_lo = np.searchsorted(xs, q_lo[:, 0])
+    i_hi = np.searchsorted(xs, q_hi[:, 0], side="right")
+    spans = zip(starts, ends, i_lo, i_hi, q_lo[:, 1], q_hi[:, 1], strict=True)
+    for a, b, i, j, y0, y1 in spans:
         ci = by_x[i:j]
         y = cp[ci, 1]
-        ci = np.sort(ci[(y >= y0) & (y <= y0 + cell + 2 * radius)])
+        ci = np.sort(ci[(y >= y0) & (y <= y1)])
         if len(ci):
             out.append((order[a:b], ci))
     return out

@@ -521,8 +521,9 @@ class Tracker:
         uv = self.camera.project(X[front], pred)
         h, w = shape[:2]
         m = self.s.detect_margin_px
-        x0, y0 = np.floor(np.percentile(uv, 1, axis=0) - m).astype(int)
-        x1, y1 = np.ceil(np.percentile(uv, 99, axis=0) + m).astype(int)
+        lo, hi = np.percentile(uv, [1, 99], axis=0)  # one partition for both
+        x0, y0 = np.floor(lo - m).astype(int)
+        x1, y1 = np.ceil(hi + m).astype(int)
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
         if x1 - x0 < 32 or y1 - y0 < 32 or (x1 - x0) * (y1 - y0) > 0.7 * w * h:
             return None
