@@ -1,5 +1,6 @@
 """The CLI contract: version, help, config layering and one-line errors."""
 
+import os
 import subprocess
 import sys
 
@@ -33,6 +34,20 @@ def test_version_and_help_load_no_command(args):
     p = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True)
     assert p.returncode == 0, p.stderr
     assert p.stderr.strip() == "[]", p.stderr
+
+
+@pytest.mark.parametrize(("given", "used"), [(None, "1"), ("", "1"), (" ", "1"), ("3", "3")])
+def test_numpys_blas_runs_in_the_calling_thread_unless_the_user_says(given, used):
+    """OpenBLAS's helper threads spin against mirage's own (issue 15): the command sets one
+    thread before numpy loads, also over an empty value (OpenBLAS reads it as unset), and
+    keeps a value the user chose."""
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    code = "import os, mirage_cli.cli; print(os.environ['OPENBLAS_NUM_THREADS'])"
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.strip() == used
 
 
 def test_help_lists_every_command_as_click_would():
