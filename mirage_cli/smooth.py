@@ -99,7 +99,7 @@ _BAND = 17  # H couples frames two apart: 6 x 2 + 5 sub-diagonals
 _pbsv, _pbtrs = scipy.linalg.lapack.dpbsv, scipy.linalg.lapack.dpbtrs
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=64)  # one entry per window length (up to 2 lag + 1)
 def _band_layout(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the lower triangle of H's blocks goes in LAPACK's lower band storage (row
     d, column i holds H[i + d, i]): the block (r + o, r) at blocks[r, o] (o = 0, 1, 2,
