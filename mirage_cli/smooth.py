@@ -36,7 +36,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import scipy.linalg
 import scipy.linalg.lapack
 
 from .pose import Pose, rodrigues_many, rotvecs
@@ -121,10 +120,11 @@ def _residuals(Rm, cm, R, c) -> np.ndarray:
 
 def _step(use, Rm, cm, W, R, c, prior, P):
     """Gauss-Newton step of the window (measurements at frames `use`, their information
-    W): corrections (n, 6) and the Cholesky factor of the banded information, or None.
+    W): corrections (n, 6) and the Cholesky factor of the information H (None, None when
+    H is not positive definite or not finite).
 
-    H is assembled block-banded (each frame's block and its couplings one and two frames
-    on), the prior's blocks added in the order of the dense assembly it replaces."""
+    H is assembled straight into LAPACK's band storage: each frame's block and its
+    couplings to the next two frames, as far as the prior's second differences reach."""
     n = len(R)
     g2 = np.zeros((n, 6))
     z = _residuals(Rm, cm, R[use], c[use])
@@ -145,8 +145,8 @@ def _step(use, Rm, cm, W, R, c, prior, P):
     ab[row, col] = blocks.ravel()[src]
     if not (np.all(np.isfinite(ab)) and np.all(np.isfinite(g2))):
         return None, None
-    factor, d, info = _pbsv(ab, g2.ravel(), lower=1)
-    if info != 0:
+    factor, d, err = _pbsv(ab, g2.ravel(), lower=1)
+    if err != 0:
         return None, None
     return d.reshape(n, 6), factor
 
@@ -204,8 +204,8 @@ def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings)
         kept[np.flatnonzero(kept)[worst]] = False
     E = np.zeros((6 * n, 6))
     E[6 * k : 6 * k + 6] = np.eye(6)
-    cov, info_ = _pbtrs(factor, E, lower=1)
-    if info_ != 0:
+    cov, err = _pbtrs(factor, E, lower=1)  # the step's factor: H did not change since
+    if err != 0:
         return None
     cov = cov[6 * k : 6 * k + 6]
     R_cw = R[k].T
