@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -254,9 +255,10 @@ def main():
     checkouts = [("this checkout", ROOT)]
     if args.against is not None:
         checkouts.append((f"{args.against}", args.against.resolve()))
-    runs = command_runs(model, args.data / "orbit.mp4", max(1, args.repeats), checkouts)
+    per_run = command_runs(model, args.data / "orbit.mp4", max(1, args.repeats), checkouts)
+    runs = {k: tuple(np.median(np.array(v), axis=0).tolist()) for k, v in per_run.items()}
     ceiling = float(np.median(decode))
-    fps, wall, mb = (runs[ROOT][i] for i in range(3))
+    fps, wall, mb, cpu = runs[ROOT]
     print(
         f"\n| end to end | frames/s | share of the decode-only ceiling |\n|---|---|---|\n"
         f"| `mirage track` (its summary; wall {wall:.1f} s with start-up, peak {mb:.0f} MB) "
@@ -267,13 +269,23 @@ def main():
         return
     print(
         f"\n| `mirage track`, runs interleaved (median of {max(1, args.repeats)}) | frames/s "
-        "(summary) | wall s | peak MB |\n|---|---|---|---|"
+        "(summary) | wall s | CPU s | peak MB |\n|---|---|---|---|---|"
     )
     for name, path in checkouts:
-        f, w, m = runs[path]
-        print(f"| {name} | {f:.1f} | {w:.1f} | {m:.0f} |")
-    f0, w0, _ = runs[checkouts[1][1]]
-    print(f"| ratio (this / other) | {fps / f0:.2f}x | {wall / w0:.2f} | |")
+        f, w, c, m = (runs[path][i] for i in (0, 1, 3, 2))
+        print(f"| {name} | {f:.1f} | {w:.1f} | {c:.1f} | {m:.0f} |")
+    f0, w0, _, c0 = runs[checkouts[1][1]]
+    print(f"| ratio (this / other) | {fps / f0:.2f}x | {wall / w0:.2f} | {cpu / c0:.2f} | |")
+    # the shared machine's speed drifts over minutes (the same work takes 40% more CPU in
+    # a loaded phase): the ratio of each run to the other checkout's run beside it cancels
+    # the drift better than the ratio of the medians
+    other = per_run[checkouts[1][1]]
+    pair = np.array([a[0] / b[0] for a, b in zip(per_run[ROOT], other, strict=True)])
+    print(
+        f"\nrun-by-run frames/s ratios: median {np.median(pair):.2f}x, range "
+        f"{pair.min():.2f}-{pair.max():.2f}; this checkout's runs "
+        + ", ".join(f"{r[0]:.1f}" for r in per_run[ROOT])
+    )
 
 
 # runs `python -m mirage_cli ARGS...` and reports its own peak memory at exit (VmHWM: a
@@ -292,8 +304,8 @@ PEAK = (
 
 def command_runs(model, video: Path, repeats: int, checkouts) -> dict:
     """`mirage track` end to end in a subprocess of each checkout, interleaved: per checkout
-    the medians of (frames/s of its summary, wall seconds including start-up and model
-    loading, peak resident memory in MB)."""
+    a list of (frames/s of its summary, wall seconds including start-up and model loading,
+    peak resident memory in MB, CPU seconds user + system), one per run."""
     res = {path: [] for _, path in checkouts}
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "model.mirage"
@@ -302,19 +314,22 @@ def command_runs(model, video: Path, repeats: int, checkouts) -> dict:
             for _, root in checkouts:
                 env = dict(ENV, PYTHONPATH=str(root))  # that checkout's package
                 t0 = time.perf_counter()
+                ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 p = subprocess.run(
                     [sys.executable, "-c", PEAK, "track", str(video), "--model", str(path),
                      "-o", str(Path(tmp) / "poses.csv")],
                     capture_output=True, text=True, cwd=root, env=env,
                 )  # fmt: skip
                 wall = time.perf_counter() - t0
+                ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu = ru1.ru_utime + ru1.ru_stime - ru0.ru_utime - ru0.ru_stime
                 text = p.stdout + p.stderr
                 m = re.search(r"([0-9.]+) frames/s", text)
                 kb = re.search(r"peak_rss_kb (\d+)", text)
                 if p.returncode != 0 or m is None or kb is None:
                     raise SystemExit(f"mirage track ({root}) failed: {text.strip()[-300:]}")
-                res[root].append((float(m.group(1)), wall, int(kb.group(1)) / 1024))
-    return {k: tuple(np.median(np.array(v), axis=0).tolist()) for k, v in res.items()}
+                res[root].append((float(m.group(1)), wall, int(kb.group(1)) / 1024, cpu))
+    return res
 
 
 if __name__ == "__main__":
