@@ -244,10 +244,8 @@ class Tracker:
         self._uncertain_pose = None
         self._frame_no += 1
         self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
-        if (self.prev_pose is None and self.hint is None) or (
-            self.prev_pose is not None and self.lost_run > 0
-        ):
-            self._search_ahead(ahead)
+        if self.lost_run > 0 and (self.prev_pose is not None or self.hint is None):
+            self._search_ahead(ahead)  # lost (the first frame is expected to find it)
         if (
             self.s.flow
             and self.prev_pose is not None

@@ -357,6 +357,26 @@ def test_lost_frames_are_searched_ahead_on_the_worker(sample_model, monkeypatch)
     assert sum(here[i] for i in range(first + 2, len(recs))) == 0
 
 
+def test_the_first_frame_is_not_searched_ahead(sample_model, monkeypatch):
+    """Before any frame has failed, the coming frames' relocalisations are not queued on the
+    worker: the first frame usually finds the landmark, and those searches would only take
+    the second core from it. Once a frame is lost, they are (the test above)."""
+    model = LandmarkModel.load(sample_model)
+    frames = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 12))
+    tracker = Tracker(model, model.camera, TrackSettings())
+    started = []
+    start = Tracker._start
+
+    def recorded(self, frame_no, kind, *args):
+        started.append((frame_no, kind))
+        return start(self, frame_no, kind, *args)
+
+    monkeypatch.setattr(Tracker, "_start", recorded)
+    recs = list(track.run(iter(frames), tracker))
+    assert recs[0].ok and recs[0].mode == "relocalise"
+    assert started and all(kind == "box" for _, kind in started), started
+
+
 def test_a_forked_child_tracks_with_a_worker_of_its_own(sample_model):
     """The worker thread does not survive a fork: a child (a user's fork-based pool) that
     inherited the parent's worker must start its own, not wait on a thread it lacks."""
