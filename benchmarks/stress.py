@@ -58,7 +58,7 @@ from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
-from mirage_cli.runtime import keep_freed_memory  # noqa: E402
+from mirage_cli.runtime import keep_freed_memory, opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
 from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
@@ -394,7 +394,7 @@ def main():
         except ImportError:
             systems.remove("hloc")
             notes.append("hloc-style: not run, pycolmap is not installed (pip install pycolmap)")
-    cv2.setNumThreads(2)
+    opencv_threads_for_two_callers()  # as `mirage track` sizes it (every system here)
     camera = Camera.load(SAMPLE / "camera_truth.yaml")
     data = {s: scene_data(s, args.frames, args.jobs) for s in scenes}  # render first
     if args.render_only:

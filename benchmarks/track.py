@@ -47,7 +47,7 @@ from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
-from mirage_cli.runtime import keep_freed_memory  # noqa: E402
+from mirage_cli.runtime import keep_freed_memory, opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.solver import METHODS  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
@@ -201,7 +201,7 @@ def main():
         help="folder with orbit.mp4 + orbit_truth.csv (e.g. from mirage synth)",
     )
     args = ap.parse_args()
-    cv2.setNumThreads(2)
+    opencv_threads_for_two_callers()  # as `mirage track` sizes it (every system here)
     camera = Camera.load(SAMPLE / "camera_truth.yaml")
     truth = read_pose_csv(args.data / "orbit_truth.csv")
     decode = []

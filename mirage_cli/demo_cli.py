@@ -163,6 +163,7 @@ def _build_model(src: Path, d: Path) -> None:
 
 
 def _track(src: Path, d: Path, overlay: bool) -> None:
+    from . import runtime
     from .camera import Camera
     from .frames import FrameSource, matching_camera
     from .model import LandmarkModel
@@ -173,6 +174,7 @@ def _track(src: Path, d: Path, overlay: bool) -> None:
     frames = FrameSource([src / "orbit.mp4"])
     camera = matching_camera(Camera.load(d / "camera.yaml"), *frames.size)
     tracker = Tracker(model, camera, TrackSettings())
+    runtime.opencv_threads_for_two_callers()
     track_to_files(frames, tracker, d / "poses.csv", overlay=d / "overlay.mp4" if overlay else None)
 
 

@@ -161,6 +161,7 @@ def track_cmd(
         max_rmse_px=max_rmse,
     )
     tracker = Tracker(model, camera, settings)
+    runtime.opencv_threads_for_two_callers()
     track_to_files(
         src, tracker, out, first or 0, last, every, overlay, also, rerun_path,
         SmoothSettings(lag=smooth),

@@ -1,5 +1,6 @@
 """The allocator policy `mirage track` sets: freed memory is reused, not faulted in again."""
 
+import os
 import platform
 import subprocess
 import sys
@@ -40,3 +41,21 @@ def test_freed_blocks_stay_and_come_back_without_page_faults():
     assert kept < 5_000  # glibc gives a freed 20 MB block back to the kernel
     kept, faults = _probe("keep")
     assert kept > 15_000 and faults < 20
+
+
+@pytest.mark.parametrize("env", [None, "1"])
+def test_opencv_gets_a_thread_more_than_the_cores_unless_the_user_says(env):
+    """The tracker calls OpenCV's parallel code from two threads (issue 15): its pool is one
+    above the cores, and a size the user set in OPENCV_FOR_THREADS_NUM is kept."""
+    code = (
+        "import cv2\n"
+        "from mirage_cli.runtime import opencv_threads_for_two_callers as f\n"
+        "print(f(), cv2.getNumThreads(), cv2.getNumberOfCPUs())"
+    )
+    environ = {k: v for k, v in os.environ.items() if k != "OPENCV_FOR_THREADS_NUM"}
+    if env is not None:
+        environ["OPENCV_FOR_THREADS_NUM"] = env
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=environ)
+    assert p.returncode == 0, p.stderr
+    got, now, cpus = map(int, p.stdout.split())
+    assert got == now == (cpus + 1 if env is None else 1)
