@@ -272,7 +272,7 @@ def main():
         "(summary) | wall s | CPU s | peak MB |\n|---|---|---|---|---|"
     )
     for name, path in checkouts:
-        f, w, c, m = (runs[path][i] for i in (0, 1, 3, 2))
+        f, w, m, c = runs[path]
         print(f"| {name} | {f:.1f} | {w:.1f} | {c:.1f} | {m:.0f} |")
     f0, w0, _, c0 = runs[checkouts[1][1]]
     print(f"| ratio (this / other) | {fps / f0:.2f}x | {wall / w0:.2f} | {cpu / c0:.2f} | |")

@@ -28,6 +28,7 @@ from . import bags
 from .bags import BagRef, is_bag_path
 from .camera import Camera
 from .errors import InputError
+from .features import to_gray
 
 log = logging.getLogger("mirage")
 
@@ -340,7 +341,7 @@ def gray_frames(frames: Iterator[Frame]) -> Iterator[Frame]:
     try:
         for f in frames:
             if f.image is not None and f.image.ndim == 3:
-                f = f._replace(image=cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY))
+                f = f._replace(image=to_gray(f.image))
             yield f
     finally:
         close = getattr(frames, "close", None)

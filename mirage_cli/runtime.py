@@ -46,12 +46,11 @@ def opencv_threads_for_two_callers() -> int:
     and return its size.
 
     The tracker calls OpenCV's parallel code from two threads of its own: Lucas-Kanade on
-    the tracking thread while SIFT runs on the detection worker. With as many pool threads
-    as cores, one of them waits for the other's share of the pool; one more thread cut the
-    tracking thread's waits for the worker from 0.67-0.74 to 0.46-0.57 s on the sample
-    orbit (2 cores, 6 interleaved pairs: 1.00-1.11x, median 1.04x; the same poses, since
-    what OpenCV computes does not depend on how it splits the work). Processes that run
-    one flight per core (`mirage batch`) keep one thread each instead."""
+    the tracking thread while SIFT runs on the detection worker. One pool thread more than
+    the cores cut the tracking thread's waits for the worker from 0.67-0.74 to 0.46-0.57 s
+    on the sample orbit (2 cores, 6 interleaved pairs: 1.00-1.11x, median 1.04x), with the
+    same poses (the sample's and the 4 m orbit's CSVs identical). Processes that run one
+    flight per core (`mirage batch`) keep one thread each instead."""
     import cv2
 
     if not os.environ.get("OPENCV_FOR_THREADS_NUM", "").strip():

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from .camera import Camera
-from .features import detect, guided_match, make_detector
+from .features import detect, guided_match, make_detector, to_gray
 from .frames import Frame
 from .model import LandmarkModel, ground_points, point_twins
 from .pose import Pose
@@ -728,7 +728,7 @@ def run(
     for f in frames:
         gray = None
         if f.image is not None:
-            gray = cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) if f.image.ndim == 3 else f.image
+            gray = to_gray(f.image)
             if gray.shape[::-1] != size:
                 gray = None
         queue.append((f, gray))
