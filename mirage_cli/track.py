@@ -65,6 +65,8 @@ class TrackSettings:
     min_flow_points: int = 30
     flow_fb_px: float = 0.7  # forward-backward consistency of Lucas-Kanade
     flow_window_px: int = 7  # Lucas-Kanade window: small, so it stays on one surface
+    flow_levels: int = 1  # pyramid levels above the image: each point starts where the
+    # predicted pose puts it (forward) or at its anchor (backward), so one suffices
     flow_keep: float = 0.5  # fewer of the detected points still followed: detect afresh
     flow_max_dev_sigma: float = 3.0  # flowed pose this many sigmas off the prediction: detect
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
@@ -308,7 +310,7 @@ class Tracker:
         a0 = self.anchor_px.reshape(-1, 1, 2)
         lk = dict(
             winSize=(self.s.flow_window_px, self.s.flow_window_px),
-            maxLevel=3,
+            maxLevel=self.s.flow_levels,
             criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
