@@ -118,24 +118,18 @@ class Camera:
 
     def _project_standard(self, X: np.ndarray, pose: Pose) -> np.ndarray:
         """cv2.projectPoints of OpenCV's standard model (k1 k2 p1 p2 [k3 [k4 k5 k6]]), its
-        operations in its order, so the pixels are the same to the last bit (a point at
-        depth 0 is divided by 1, as there)."""
-        R, t = cv2.Rodrigues(pose.rvec)[0], pose.t
-        Y = R[None, :, 0] * X[:, :1] + R[None, :, 1] * X[:, 1:2] + R[None, :, 2] * X[:, 2:] + t
-        z = Y[:, 2]
-        iz = 1.0 / np.where(z != 0, z, 1.0)
-        x, y = Y[:, 0] * iz, Y[:, 1] * iz
+        operations in its order, so the pixels are the same to the last bit; compiled (one
+        pass over the points: 300 points 60-90 -> 18-22 us)."""
+        from . import refine  # numba: only the commands that project load it
+
+        R = cv2.Rodrigues(pose.rvec)[0]
         k = np.zeros(8)
         k[: self.dist.size] = self.dist
-        r2 = x * x + y * y
-        r4 = r2 * r2
-        r6 = r4 * r2
-        cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
-        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
-        a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
-        xd = x * cdist * icdist2 + k[2] * a1 + k[3] * a2
-        yd = y * cdist * icdist2 + k[2] * a3 + k[3] * a1
-        return np.column_stack([xd * self.K[0, 0] + self.K[0, 2], yd * self.K[1, 1] + self.K[1, 2]])
+        out = np.empty((len(X), 2))
+        K = self.K
+        refine.project_standard(X, R, np.asarray(pose.t, float), k, K[0, 0], K[1, 1], K[0, 2],
+                                K[1, 2], out)  # fmt: skip
+        return out
 
     def undistort_points(self, pixels) -> np.ndarray:
         """Normalised image coordinates (N,2) of pixels: lens distortion and K removed."""

@@ -387,3 +387,104 @@ def cached_on_disk() -> bool:
         return os.path.exists(refine._cache._cache_file._index_path)
     except AttributeError:  # caching unavailable, or numba internals moved
         return True
+
+
+@_jit
+def sandwich_terms(X, xy, fx, fy, R, t, huber_px, use_huber, J, r, w, H):
+    """The sandwich covariance's first pass: per point the 2x6 pixel Jacobian J (n, 2, 6) of
+    the left perturbation and the pixel residual r (n, 2) at (R, t), the Huber weights w
+    (1 without `use_huber`) and H = sum w J^T J. False if a point is at or behind the
+    camera (no Jacobian there)."""
+    n = X.shape[0]
+    r2 = np.empty(n)
+    for i in range(n):
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[2]
+        if not z > MIN_DEPTH:
+            return False
+        iz = 1.0 / z
+        x = (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + t[0]) * iz
+        y = (R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + t[1]) * iz
+        J[i, 0, 0], J[i, 0, 1], J[i, 0, 2] = -fx * x * y, fx * (1.0 + x * x), -fx * y
+        J[i, 0, 3], J[i, 0, 4], J[i, 0, 5] = fx * iz, 0.0, -fx * x * iz
+        J[i, 1, 0], J[i, 1, 1], J[i, 1, 2] = -fy * (1.0 + y * y), fy * x * y, fy * x
+        J[i, 1, 3], J[i, 1, 4], J[i, 1, 5] = 0.0, fy * iz, -fy * y * iz
+        r[i, 0] = (xy[i, 0] - x) * fx
+        r[i, 1] = (xy[i, 1] - y) * fy
+        r2[i] = r[i, 0] * r[i, 0] + r[i, 1] * r[i, 1]
+    if use_huber:  # the fit's own weights, without its gross-outlier cut
+        robust_weights(r2, True, huber_px, math.inf, w)
+    else:
+        w[:] = 1.0
+    H[:] = 0.0
+    for i in range(n):
+        for a in range(6):
+            ja0, ja1 = w[i] * J[i, 0, a], w[i] * J[i, 1, a]
+            for b in range(a, 6):
+                H[a, b] += ja0 * J[i, 0, b] + ja1 * J[i, 1, b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return True
+
+
+@_jit
+def sandwich_meat(J, r, w, Hi, M):
+    """The sandwich's middle: M = sum g g^T with g = w J^T e and e = (I - w J Hi J^T)^-1 r,
+    the residual as it would be without the point (HC3 leverage correction)."""
+    n = J.shape[0]
+    M[:] = 0.0
+    JH = np.empty((2, 6))
+    g = np.empty(6)
+    for i in range(n):
+        for k in range(2):
+            for b in range(6):
+                s = 0.0
+                for a in range(6):
+                    s += J[i, k, a] * Hi[a, b]
+                JH[k, b] = s * w[i]
+        h00 = h01 = h10 = h11 = 0.0
+        for b in range(6):
+            h00 += JH[0, b] * J[i, 0, b]
+            h01 += JH[0, b] * J[i, 1, b]
+            h10 += JH[1, b] * J[i, 0, b]
+            h11 += JH[1, b] * J[i, 1, b]
+        a00, a01, a10, a11 = 1.0 - h00, -h01, -h10, 1.0 - h11
+        det = a00 * a11 - a01 * a10
+        if not abs(det) > 1e-3:
+            det = 1e-3  # a point that alone fixes a direction
+        e0 = (a11 * r[i, 0] - a01 * r[i, 1]) / det
+        e1 = (-a10 * r[i, 0] + a00 * r[i, 1]) / det
+        for a in range(6):
+            g[a] = w[i] * (J[i, 0, a] * e0 + J[i, 1, a] * e1)
+        for a in range(6):
+            for b in range(a, 6):
+                M[a, b] += g[a] * g[b]
+    for a in range(6):
+        for b in range(a):
+            M[a, b] = M[b, a]
+
+
+@_jit
+def project_standard(X, R, t, k, fx, fy, cx, cy, out):
+    """Pixels (n, 2) of OpenCV's standard lens model (k1 k2 p1 p2 k3 k4 k5 k6 in `k`), each
+    operation in the order of cv2.projectPoints (a point at depth 0 divided by 1, as there),
+    so the pixels are the same to the last bit; one pass instead of twenty array
+    operations."""
+    for i in range(X.shape[0]):
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        Y0 = R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2 + t[0]
+        Y1 = R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2 + t[1]
+        z = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2 + t[2]
+        iz = 1.0 / (z if z != 0 else 1.0)
+        x, y = Y0 * iz, Y1 * iz
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
+        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+        a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
+        xd = x * cdist * icdist2 + k[2] * a1 + k[3] * a2
+        yd = y * cdist * icdist2 + k[2] * a3 + k[3] * a1
+        out[i, 0] = xd * fx + cx
+        out[i, 1] = yd * fy + cy

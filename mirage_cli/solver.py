@@ -390,36 +390,23 @@ def sandwich_covariance(
     """
     X = np.ascontiguousarray(np.asarray(points_3d, dtype=np.float64).reshape(-1, 3))
     nan = np.full((6, 6), np.nan)
-    if len(X) < 4:
+    n = len(X)
+    if n < 4:
         return nan
-    J, pred = _pixel_jacobian(X, pose, camera)
     xy = camera.undistort_points(points_2d)
-    r = (xy - pred) * np.array([camera.fx, camera.fy])
-    w = np.ones(len(X))
-    if huber_px is not None:  # the fit's own weights, without its gross-outlier cut
-        _k.robust_weights((r * r).sum(1), True, float(huber_px), math.inf, w)
-    Jw = J * w[:, None, None]
-    H = Jw.reshape(-1, 6).T @ J.reshape(-1, 6)
+    J, r, w, H = np.empty((n, 2, 6)), np.empty((n, 2)), np.empty(n), np.empty((6, 6))
+    huber = float(huber_px) if huber_px is not None else 0.0
+    R, t = np.ascontiguousarray(pose.R, float), np.asarray(pose.t, float)
+    if not _k.sandwich_terms(X, xy, camera.fx, camera.fy, R, t, huber, huber_px is not None,
+                             J, r, w, H):  # fmt: skip
+        return nan  # a point at or behind the camera
     try:
         Hi = np.linalg.inv(H)
     except np.linalg.LinAlgError:
         return nan
-    h = (Jw @ Hi) @ J.transpose(0, 2, 1)  # per-point 2x2 leverage (matmuls: einsum's
-    # four operands ran 5x slower)
-    A = np.eye(2) - h
-    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-    det = np.where(np.abs(det) > 1e-3, det, 1e-3)  # a point that alone fixes a direction
-    e = (
-        np.column_stack(
-            [
-                A[:, 1, 1] * r[:, 0] - A[:, 0, 1] * r[:, 1],
-                -A[:, 1, 0] * r[:, 0] + A[:, 0, 0] * r[:, 1],
-            ]
-        )
-        / det[:, None]
-    )
-    g = np.einsum("n,nki,nk->ni", w, J, e)  # w_i J_i^T e_i
-    cov = Hi @ (g.T @ g) @ Hi
+    M = np.empty((6, 6))
+    _k.sandwich_meat(J, r, w, Hi, M)
+    cov = Hi @ M @ Hi
     return 0.5 * (cov + cov.T)
 
 
@@ -741,4 +728,6 @@ def warm_up() -> None:
     X = np.array([[0, 0, 0], [0.2, 0, 0], [0, 0.2, 0], [0, 0, 0.2], [0.2, 0.2, 0.1], [0.1, 0, 0.2]])
     cam = Camera.from_params(640, 480, 500.0)
     truth = Pose(np.eye(3), np.array([0.0, 0.0, 2.0]))
-    solve_pose(X, cam.project(X, truth), cam, Pose(np.eye(3), np.array([0.01, 0.0, 2.0])))
+    uv = cam.project(X, truth)
+    solve_pose(X, uv, cam, Pose(np.eye(3), np.array([0.01, 0.0, 2.0])))
+    sandwich_covariance(X, uv, truth, cam, 0.5)

@@ -289,6 +289,38 @@ def test_sandwich_covariance_is_honest_and_sees_a_bad_lever():
     assert not np.isfinite(sandwich_covariance(X[:3], u[:3], est.pose, CAM)).any()
 
 
+def test_compiled_sandwich_is_the_matrix_formula():
+    """The compiled sandwich (one pass per point) equals the formula written as whole-matrix
+    algebra, with and without Huber weights, on a scene with a few outliers."""
+    rng = np.random.default_rng(11)
+    X, truth, ref = scene(rng, 60)
+    u = CAM.project(X, truth) + rng.normal(scale=0.5, size=(60, 2))
+    u[:4] += 4.0
+    pose = solve_pose(X, u, CAM, ref).pose
+    Xc = pose.transform(X)
+    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1 / Xc[:, 2]
+    z0 = np.zeros_like(x)
+    Jx = CAM.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z0, -x * iz])
+    Jy = CAM.fy * np.column_stack([-(1 + y * y), x * y, x, z0, iz, -y * iz])
+    J = np.stack([Jx, Jy], axis=1)  # (n, 2, 6)
+    r = (CAM.undistort_points(u) - np.column_stack([x, y])) * [CAM.fx, CAM.fy]
+    for huber in (None, 0.5):
+        w = np.ones(len(X))
+        if huber is not None:  # Huber on the residual norm, its scale from the median
+            r2 = (r * r).sum(1)
+            k2 = max(huber**2, 6.25 * np.sort(r2)[len(r2) // 2] / (2 * math.log(2)))
+            w = np.minimum(np.sqrt(k2 / r2), 1.0)
+        Hi = np.linalg.inv(np.einsum("n,nki,nkj->ij", w, J, J))
+        h = w[:, None, None] * (J @ Hi @ J.transpose(0, 2, 1))
+        e = np.linalg.solve(np.eye(2) - h, r[:, :, None])[:, :, 0]
+        g = w[:, None] * np.einsum("nki,nk->ni", J, e)
+        want = Hi @ g.T @ g @ Hi
+        got = sandwich_covariance(X, u, pose, CAM, huber)
+        assert np.allclose(got, want, rtol=1e-9, atol=0), huber
+    plain, robust = (sandwich_covariance(X, u, pose, CAM, h) for h in (None, 0.5))
+    assert not np.allclose(plain, robust, rtol=1e-3)  # the outliers' weights matter
+
+
 def test_covariance_three_points_uses_prior_sigma():
     rng = np.random.default_rng(42)
     X, truth, ref = scene(rng, 3, False, 5.0)
