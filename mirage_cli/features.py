@@ -225,24 +225,31 @@ def guided_match(
     point with the best *other* point inside the radius (a point seen by four keyframes
     no longer fails against itself), and a repeated texture elsewhere in the model never
     competes because it is predicted far away. One query per point (the closest) survives.
-    Blockwise dense: the queries are grouped in cells of twice the radius, and each cell's
-    descriptor distances (a BLAS product) are computed only to the candidates that can lie
-    within the radius of one of its queries (on the sample's calls 3x faster than one
-    matrix of every pair, the same matches).
+    SIFT's integer descriptors within a finite radius go to a compiled loop over the pairs
+    inside the radius (`match_kernel`, exact). Other descriptors, or no radius: blockwise
+    dense, the queries grouped in cells of twice the radius, each cell's descriptor
+    distances (a BLAS product) computed only to the candidates that can lie within the
+    radius of one of its queries (on the sample's calls 3x faster than one matrix of every
+    pair, the same matches).
     """
     empty = np.zeros(0, np.int64)
     nq, nc = len(query_px), len(cand_px)
     if nq == 0 or nc == 0:
         return empty, empty
     cand_point = np.asarray(cand_point)
+    finite = bool(np.isfinite(radius_px))
+    qp = np.ascontiguousarray(query_px, np.float32)
+    cp = np.ascontiguousarray(cand_px, np.float32)
+    if finite and query_desc.dtype != np.uint8:
+        qb, cb = _as_bytes(query_desc), _as_bytes(cand_desc)
+        if qb is not None and cb is not None:  # SIFT's: integers, exact in any order
+            return _guided_compiled(qp, qb, cp, cb, cand_point, float(radius_px), ratio)
     if query_desc.dtype == np.uint8:
         q = c = qn = cn = None
     else:
         q, c = np.asarray(query_desc, np.float32), np.asarray(cand_desc, np.float32)
         qn, cn = np.einsum("ij,ij->i", q, q), np.einsum("ij,ij->i", c, c)
         q = q * np.float32(-2.0)  # exact: (-2 q) . c is -2 (q . c) to the bit
-    finite = bool(np.isfinite(radius_px))
-    qp, cp = np.asarray(query_px, np.float32), np.asarray(cand_px, np.float32)
     blocks = _cells(qp, cp, float(radius_px)) if finite else [(np.arange(nq), np.arange(nc))]
     found = []
     for qi, ci in blocks:
@@ -267,7 +274,11 @@ def guided_match(
     if not found:
         return empty, empty
     qi, ci, pt, d = (np.concatenate(x) for x in zip(*found, strict=True))
-    # one query per 3D point: the closest descriptor wins (on a tie, the first query)
+    return _one_query_per_point(qi, ci, pt, d)
+
+
+def _one_query_per_point(qi, ci, pt, d) -> tuple[np.ndarray, np.ndarray]:
+    """The closest descriptor wins each 3D point (on a tie, the first query); by query."""
     s = np.lexsort((qi, d, pt))
     qi, ci, pt = qi[s], ci[s], pt[s]
     first = np.ones(len(qi), bool)
@@ -275,6 +286,32 @@ def guided_match(
     qi, ci = qi[first], ci[first]
     s = np.argsort(qi)
     return qi[s], ci[s]
+
+
+def _as_bytes(desc: np.ndarray) -> np.ndarray | None:
+    """The descriptors as uint8 when they are integers 0..255 held as float (OpenCV's SIFT
+    rounds them), else None."""
+    with np.errstate(invalid="ignore"):  # NaN or out of range: not equal below
+        b = np.asarray(desc).astype(np.uint8)
+    return b if np.array_equal(b, desc) else None
+
+
+def _guided_compiled(qp, qb, cp, cb, cand_point, radius, ratio):
+    """`guided_match` for integer descriptors: only the pairs inside the radius, in one
+    compiled pass (`match_kernel`); the same matches as the blockwise matrices (on the
+    sample's 109 recorded calls: identical, 5.4 -> 2.9 ms a call)."""
+    from .match_kernel import ratio_within_radius  # numba: loaded by the commands that track
+
+    by_x = np.argsort(cp[:, 0], kind="stable")
+    best_c = np.empty(len(qp), np.int64)
+    best_d = np.empty(len(qp), np.float32)
+    ratio_within_radius(
+        qp, qb, cp, cb, cand_point.astype(np.int64), by_x, np.ascontiguousarray(cp[by_x, 0]),
+        radius + 1.0, np.float32(radius**2), np.float32(ratio**2), best_c, best_d,
+    )  # fmt: skip
+    qi = np.flatnonzero(best_c >= 0)
+    ci = best_c[qi]
+    return _one_query_per_point(qi, ci, cand_point[ci], best_d[qi])
 
 
 def _cells(qp: np.ndarray, cp: np.ndarray, radius: float) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -41,6 +41,7 @@ from .solver import (
     sigmas,
     solve_pose,
 )
+from .solver import warm_up as _warm_up_solver
 from .trajectory import FrameRecord, Measurement, Status
 
 
@@ -152,6 +153,15 @@ def unambiguous_pose(
     full[np.flatnonzero(inl)[final.inliers]] = True
     final.inliers = full
     return final
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the solver's and guided matching's kernels, so that
+    `mirage track` does it before its clock starts instead of in the first frames."""
+    _warm_up_solver()
+    d = np.arange(256, dtype=np.float32).reshape(2, 128)  # integers: the compiled path
+    px = np.zeros((2, 2), np.float32)
+    guided_match(px, d, px, d, np.arange(2), 10.0)
 
 
 _WORKER: ThreadPoolExecutor | None = None

@@ -32,8 +32,8 @@ from .frames import FrameSource, gray_frames, matching_camera, prefetch, with_to
 from .model import LandmarkModel
 from .plotting import draw_overlay
 from .smooth import Smoother, SmoothSettings
-from .solver import METHODS, warm_up
-from .track import Tracker, TrackSettings
+from .solver import METHODS
+from .track import Tracker, TrackSettings, warm_up
 from .trajectory import FORMATS, TRACK_COLUMNS, Status, TrajectoryWriter
 from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
 from .viewer import TrackRecording, check_room, rerun_module

@@ -108,3 +108,13 @@ def sample_model(tmp_path_factory):
     )
     assert p.returncode == 0, p.stderr
     return path
+
+
+@pytest.fixture(autouse=True)
+def _terminal_state_per_test():
+    """A CLI run in this process with --quiet or -v leaves `ui` so for the next test."""
+    from mirage_cli import ui
+
+    saved = dict(ui._state)
+    yield
+    ui._state.update(saved)

@@ -55,10 +55,14 @@ def _all_pairs_match(q_px, q_desc, c_px, c_desc, c_point, radius, ratio=0.8):
     return [i for i, _ in pairs], [j for _, j in pairs]
 
 
-@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8, "sift"])
 @pytest.mark.parametrize("radius", [12.0, 40.0, np.inf])
 def test_guided_match_blocks_give_the_all_pairs_matches(dtype, radius):
+    """Blockwise (float, binary) and compiled ("sift": integers held as float, with exact
+    ties between duplicated candidate rows) matching give the plain rule's matches."""
     # queries near some candidates, shared points, and distractors spread over 640 x 480
+    sift = dtype == "sift"
+    dtype = np.float32 if sift else dtype
     rng = np.random.default_rng(7)
     n_pts = 300
     pt_desc = rng.uniform(0, 255, (n_pts, 32 if dtype == np.uint8 else 128))
@@ -68,6 +72,10 @@ def test_guided_match_blocks_give_the_all_pairs_matches(dtype, radius):
     pick = rng.choice(900, 400, replace=False)
     q_px = c_px[pick] + rng.normal(0, 5, (400, 2))
     q_desc = (c_desc[pick] + rng.normal(0, 12, (400, pt_desc.shape[1]))).clip(0, 255)
+    if sift:  # OpenCV's SIFT rounds; duplicated rows (a point's twin views) tie exactly
+        q_desc, c_desc = np.round(q_desc), np.round(c_desc)
+        c_desc[1::7] = c_desc[0:-1:7]
+        c_point[1::7] = np.where(np.arange(len(c_point[1::7])) % 2, c_point[0:-1:7], c_point[1::7])
     q_desc, c_desc = q_desc.astype(dtype), c_desc.astype(dtype)
     qi, ci = guided_match(q_px, q_desc, c_px, c_desc, c_point, radius)
     want_q, want_c = _all_pairs_match(q_px, q_desc, c_px, c_desc, c_point, radius)
