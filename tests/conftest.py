@@ -112,9 +112,9 @@ def sample_model(tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def _terminal_state_per_test():
-    """A CLI run in this process with --quiet or -v leaves `ui` so for the next test."""
+    """Each test starts with `ui` as a fresh process has it: a CLI run in this process with
+    --quiet or -v (a test, or a module's fixture) would leave it so for the next test."""
     from mirage_cli import ui
 
-    saved = dict(ui._state)
+    ui._state.update(quiet=False, verbose=0)
     yield
-    ui._state.update(saved)
