@@ -222,7 +222,8 @@ class Tracker:
         self.anchor_px: np.ndarray | None = None  # (N,2) float32, rows of track_px
         self.anchor_n = 0  # points detected in the anchor
         self._kf_cache: dict[int, tuple] = {}
-        self.twins = point_twins(model)
+        self.twins = point_twins(model)  # the model's tables, built before the first frame
+        model.prepare_recognition()
         self.on_landmark = ~ground_points(model.points)
         self.votes = ~self.twins & self.on_landmark  # may decide a relocalisation
         self._frame_no = -1  # frames processed, for the smoother's anchors
