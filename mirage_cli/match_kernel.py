@@ -12,14 +12,8 @@ integer arithmetic that vectorises, instead of a matrix per cell plus its maskin
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-
-def _jit(f):
-    try:
-        return njit(cache=True)(f)
-    except RuntimeError:  # no writable cache folder: compile per process
-        return njit(f)
+from .refine import _jit  # numba with the solver kernels' on-disk cache
 
 
 @_jit
