@@ -26,6 +26,7 @@ import numpy as np
 from .boards import Board
 from .errors import InputError, cv_message
 from .frames import FrameSource, read_image
+from .runtime import opencv_one_thread
 
 SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
 DIST_NAMES = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
@@ -439,9 +440,10 @@ def _calibrate_views(views, board, size, opts):
     img = [np.ascontiguousarray(v.corners.reshape(-1, 1, 2), np.float32) for v in views]
     K0 = np.eye(3)  # with FIX_ASPECT_RATIO only fx/fy of the guess is used: 1
     try:
-        rms, K, dist, rvecs, tvecs, std, _ext, errs = cv2.calibrateCameraExtended(
-            obj, img, size, K0, None, flags=opts.flags
-        )
+        with opencv_one_thread():  # the same views give the same camera, to the bit
+            rms, K, dist, rvecs, tvecs, std, _ext, errs = cv2.calibrateCameraExtended(
+                obj, img, size, K0, None, flags=opts.flags
+            )
     except cv2.error as e:
         raise InputError(
             f"calibration failed: {cv_message(e)} (are the views too similar, "

@@ -284,6 +284,23 @@ def test_core_detection_counts():
     assert not calib.rejected and calib.rms_px < 0.3
 
 
+def test_the_same_corners_give_the_same_camera_to_the_bit():
+    """calibrateCamera's parallel sums varied their order (K differed by ~4e-12 between two
+    calls with 3 OpenCV threads); one thread inside it makes the camera reproducible, and
+    the caller's thread count is restored."""
+    det = detect_images(sorted(SYNTH.glob("*.jpg")), Board(9, 6, 0.025), workers=2)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(3)
+    try:
+        runs = [calibrate(det, Board(9, 6, 0.025)) for _ in range(4)]
+        assert cv2.getNumThreads() == 3
+    finally:
+        cv2.setNumThreads(before)
+    for c in runs[1:]:
+        assert np.array_equal(c.K, runs[0].K) and np.array_equal(c.dist, runs[0].dist)
+        assert c.rms_px == runs[0].rms_px
+
+
 def _projected_views(tilt_max_rad: float, n: int = 12, seed: int = 0) -> list[View]:
     """Exact corner projections of a 9x6 board through a known camera."""
     board = Board(9, 6, 0.025)
