@@ -347,30 +347,31 @@ def _ransac(X, u, camera: Camera, opts: RansacOptions):
     return pose, mask
 
 
-def _pixel_jacobian(X: np.ndarray, pose: Pose, camera: Camera):
-    """(n,2,6) Jacobian of the pixel projection (left perturbation) and (n,2) normalised
-    predictions."""
-    Xc = pose.transform(X)
-    x, y, iz = Xc[:, 0] / Xc[:, 2], Xc[:, 1] / Xc[:, 2], 1.0 / Xc[:, 2]
-    z0 = np.zeros_like(x)
-    J = np.stack(
-        [
-            camera.fx * np.column_stack([-x * y, 1 + x * x, -y, iz, z0, -x * iz]),
-            camera.fy * np.column_stack([-(1 + y * y), x * y, x, z0, iz, -y * iz]),
-        ],
-        axis=1,
-    )
-    return J, np.column_stack([x, y])
+def _pixel_terms(X: np.ndarray, xy: np.ndarray, pose: Pose, camera: Camera, huber_px=None):
+    """Per point the (n,2,6) Jacobian of the pixel projection (left perturbation) and the
+    pixel residual of the normalised observations `xy`, the Huber weights (1 without
+    `huber_px`) and H = sum w J^T J (compiled, `refine.sandwich_terms`); None when a
+    point is at or behind the camera."""
+    n = len(X)
+    J, r, w, H = np.empty((n, 2, 6)), np.empty((n, 2)), np.empty(n), np.empty((6, 6))
+    huber = float(huber_px) if huber_px is not None else 0.0
+    R, t = np.ascontiguousarray(pose.R, float), np.asarray(pose.t, float)
+    if not _k.sandwich_terms(X, np.ascontiguousarray(xy, float), camera.fx, camera.fy, R, t,
+                             huber, huber_px is not None, J, r, w, H):  # fmt: skip
+        return None
+    return J, r, w, H
 
 
 def cramer_rao_covariance(points_3d, pose: Pose, camera: Camera, sigma_px: float) -> np.ndarray:
     """6x6 Cramer-Rao bound (J^T J)^-1 sigma^2 at `pose`, in the same parametrisation as
     `PoseEstimate.covariance` (left perturbation: rotation vector rad, translation m):
-    the best any unbiased estimator can do with these points and isotropic pixel noise."""
+    the best any unbiased estimator can do with these points and isotropic pixel noise
+    (NaNs when a point is at or behind the camera)."""
     X = np.ascontiguousarray(np.asarray(points_3d, dtype=np.float64).reshape(-1, 3))
-    J, _ = _pixel_jacobian(X, pose, camera)
-    J = J.reshape(-1, 6)
-    return np.linalg.inv(J.T @ J) * sigma_px**2
+    terms = _pixel_terms(X, np.zeros((len(X), 2)), pose, camera)
+    if terms is None:
+        return np.full((6, 6), np.nan)
+    return np.linalg.inv(terms[3]) * sigma_px**2
 
 
 def sandwich_covariance(
@@ -393,13 +394,10 @@ def sandwich_covariance(
     n = len(X)
     if n < 4:
         return nan
-    xy = camera.undistort_points(points_2d)
-    J, r, w, H = np.empty((n, 2, 6)), np.empty((n, 2)), np.empty(n), np.empty((6, 6))
-    huber = float(huber_px) if huber_px is not None else 0.0
-    R, t = np.ascontiguousarray(pose.R, float), np.asarray(pose.t, float)
-    if not _k.sandwich_terms(X, xy, camera.fx, camera.fy, R, t, huber, huber_px is not None,
-                             J, r, w, H):  # fmt: skip
+    terms = _pixel_terms(X, camera.undistort_points(points_2d), pose, camera, huber_px)
+    if terms is None:
         return nan  # a point at or behind the camera
+    J, r, w, H = terms
     try:
         Hi = np.linalg.inv(H)
     except np.linalg.LinAlgError:
