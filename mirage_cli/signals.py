@@ -86,13 +86,18 @@ def _leave(raise_pending: bool) -> None:
 @contextlib.contextmanager
 def through_compiled_code():
     """A signal that lands while numba-compiled code runs surfaces as SystemError ("returned
-    a result with an exception set") whose context is our KeyboardInterrupt: re-raise the
-    interrupt itself, so the code that keeps finished frames sees it."""
+    a result with an exception set") caused by our KeyboardInterrupt, directly or through
+    more such SystemErrors (a signal inside numba's unpickling of a constant chained four):
+    re-raise the interrupt itself, so the code that keeps finished frames sees it."""
     try:
         yield
     except SystemError as e:
-        if isinstance(e.__context__, KeyboardInterrupt):
-            raise e.__context__ from None
+        seen, cause = set(), e.__context__
+        while isinstance(cause, SystemError) and id(cause) not in seen:
+            seen.add(id(cause))
+            cause = cause.__context__
+        if isinstance(cause, KeyboardInterrupt):
+            raise cause from None
         raise
 
 

@@ -727,6 +727,18 @@ def test_interrupt_inside_compiled_code_is_the_interrupt():
     with pytest.raises(Terminated):
         with through_compiled_code():
             compiled_call_interrupted()
+
+    def chained(depth):  # the signal inside numba's unpickling: SystemErrors chained (4 seen)
+        if depth == 0:
+            compiled_call_interrupted()
+        try:
+            chained(depth - 1)
+        except SystemError:
+            raise SystemError("returned a result with an exception set")  # noqa: B904
+
+    with pytest.raises(Terminated):
+        with through_compiled_code():
+            chained(4)
     with pytest.raises(SystemError):  # any other SystemError is left alone
         with through_compiled_code():
             raise SystemError("a real one")
