@@ -4,7 +4,9 @@ Scenes are rendered with `mirage synth` (cached under benchmarks/.cache/, keyed 
 scene's synth options, so later runs only track): a floor of repeated tiles with a
 look-away, a pole passing in front of the landmark, look-alike opposite sides, motion
 blur, far orbits at 2.5 m and 4 m from keyframes at 1.4 m (landmark ~70 px tall at 4 m),
-plus the committed sample orbit. Every system gets the same landmark model, built from
+twice the speed with its motion blur, heavy JPEG compression with noise, and the tiled
+floor with the pole seen from 2.5 m (the floor fills much of the view), plus the committed
+sample orbit. Every system gets the same landmark model, built from
 the scene's keyframes with `build-model`'s defaults, and the same decoded frames:
 
 - mirage: our tracker with its default settings (`mirage track`: each pose smoothed with
@@ -109,6 +111,16 @@ SCENES = {
     ),
     "far2.5": SceneSpec("far orbit 2.5 m", None, ["--video-radius", "2.5"]),
     "far4": SceneSpec("far orbit 4 m", None, ["--video-radius", "4.0"]),
+    # twice the speed (3.6 deg a frame; the later --turns wins), blurred as such motion is
+    "fast": SceneSpec(
+        "fast 108 deg/s + blur 4",
+        None,
+        ["--turns", "1.2", "--motion-blur", "4", "--look-away", "0"],
+    ),  # fmt: skip
+    "lowq": SceneSpec("jpeg 50 + noise 6", None, ["--jpeg-quality", "50", "--noise", "6"]),
+    "farpole": SceneSpec(
+        "far 2.5 m + pole + tiles", TILES, TILES + ["--pole", "--video-radius", "2.5"]
+    ),
 }
 
 

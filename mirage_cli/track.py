@@ -590,7 +590,7 @@ class Tracker:
         if isinstance(est, Status):
             lost.status = est
             return lost
-        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv))
+        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv), unique)
         return self._accept(res, est, uv, X, kf, land)
 
     def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int, land) -> FrameRecord:
@@ -650,10 +650,15 @@ class Tracker:
         check_jump: bool,
         on_landmark: np.ndarray | None = None,
         points: tuple[np.ndarray, np.ndarray] | None = None,
+        voting: np.ndarray | None = None,
     ) -> FrameRecord:
         """ok only with enough consistent inliers, enough of them on the landmark itself
         (`on_landmark`, per match; None: all are), a small residual, a plausible motion and
-        an uncertainty small enough to trust (else `uncertain`)."""
+        an uncertainty small enough to trust (else `uncertain`).
+
+        `voting` (per match; None: all) are the matches that could decide the pose: the
+        inlier ratio counts among them, since matches to repeated texture or the ground are
+        expected to pick the wrong twin (a tiled floor in view is half the matches)."""
         ninl = int(est.inliers.sum()) if est.success else 0
         res = FrameRecord(
             Status.LOST,
@@ -670,7 +675,11 @@ class Tracker:
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique
         need = self.s.min_inliers if mode == "relocalise" else self.s.min_track_inliers
-        if ninl < need or ninl < self.s.min_inlier_ratio * n:
+        if voting is None:
+            ratio_ok = ninl >= self.s.min_inlier_ratio * n
+        else:
+            ratio_ok = (est.inliers & voting).sum() >= self.s.min_inlier_ratio * voting.sum()
+        if ninl < need or not ratio_ok:
             return res
         n_land = ninl if on_landmark is None else int((est.inliers & on_landmark).sum())
         if n_land < min(self.s.min_landmark_inliers, need):

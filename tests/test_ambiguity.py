@@ -188,6 +188,23 @@ def test_ground_alone_is_not_ok(model):
     assert tr._gate(est, 40, "detect", False, ~ground).status == "ok"
 
 
+def test_the_inlier_ratio_counts_the_matches_that_vote(model):
+    """Relocalising with a tiled floor in view, most matches go to repeated texture and
+    pick the wrong twin; the inlier ratio counts among the matches that could decide the
+    pose (unique ones), so a clear majority of those is ok, a minority is not."""
+    tr = Tracker(model, model.camera, TrackSettings())
+    pose = look_at([1.5, 0.0, 0.6], [0, 0, 0.3])
+    inl = np.zeros(100, bool)
+    inl[:40] = True  # 40 of 100 matches agree: under half of them all
+    est = PoseEstimate(pose, True, "", 5, 0.5, inl, np.eye(6) * 1e-8, sigma_px=0.5)
+    assert tr._gate(est, 100, "relocalise", False).status == "lost"
+    voting = np.zeros(100, bool)
+    voting[:45] = True  # ...but 40 of the 45 unique ones: the other 55 are twins
+    assert tr._gate(est, 100, "relocalise", False, voting=voting).status == "ok"
+    voting[:90] = True  # 40 of 90 unique ones: the unique evidence disagrees
+    assert tr._gate(est, 100, "relocalise", False, voting=voting).status == "lost"
+
+
 def _track_gate(tr, X, uv, mode, reference):
     from mirage_cli.solver import RefineOptions, solve_pose
 
