@@ -116,11 +116,13 @@ SCENES = {
         "fast 108 deg/s + blur 4",
         None,
         ["--turns", "1.2", "--motion-blur", "4", "--look-away", "0"],
-    ),  # fmt: skip
+    ),
     "lowq": SceneSpec("jpeg 50 + noise 6", None, ["--jpeg-quality", "50", "--noise", "6"]),
     "farpole": SceneSpec(
         "far 2.5 m + pole + tiles", TILES, TILES + ["--pole", "--video-radius", "2.5"]
     ),
+    "high": SceneSpec("keyframes from 1.1 m high", ["--heights", "1.1"], []),
+    "far4tiles": SceneSpec("far 4 m + tiles", TILES, TILES + ["--video-radius", "4.0"]),
 }
 
 
