@@ -16,6 +16,14 @@ class OutputError(MirageError):
     """An output cannot be written."""
 
 
+class NothingFound(MirageError):
+    """The run went to the end, but no frame gave a pose (the landmark was never found).
+    The outputs are written (each row says why); exit 3, so a script does not go on to
+    report on an empty trajectory as if it had tracked."""
+
+    exit_code = 3
+
+
 class EnvironmentFailure(MirageError):
     """The machine, not the input: a full disk, an I/O error, a closed standard output.
     Exit 1, so scripts can tell it from a usage error."""

@@ -20,7 +20,7 @@ from .cli_options import (
     shown,
     topic_option,
 )
-from .errors import InputError, OutputError
+from .errors import InputError, NothingFound, OutputError
 from .fileio import (
     atomic_path,
     check_writable,
@@ -162,10 +162,22 @@ def track_cmd(
     )
     tracker = Tracker(model, camera, settings)
     runtime.opencv_threads_for_two_callers()
-    track_to_files(
+    stats = track_to_files(
         src, tracker, out, first or 0, last, every, overlay, also, rerun_path,
         SmoothSettings(lag=smooth),
     )  # fmt: skip
+    nothing_found(stats["rows"], out)
+
+
+def nothing_found(rows, out) -> None:
+    """No frame ok: say why in one line (exit 3), after the outputs are written."""
+    status = [str(r[0]) for r in rows]
+    if not status or Status.OK.value in status:
+        return
+    raise NothingFound(
+        f"the landmark was not found in any of the {len(status)} frames ({out} written, no pose): "
+        "check that --model is this landmark's model and --camera this video's camera"
+    )
 
 
 def tracking_camera(model, model_path, camera_path, src):
@@ -192,11 +204,11 @@ def tracking_camera(model, model_path, camera_path, src):
 def track_to_files(
     src, tracker, output, first=0, last=None, every=1, overlay=None, also=None, rerun=None,
     smooth: SmoothSettings | None = None,
-) -> None:  # fmt: skip
+) -> dict:  # fmt: skip
     """Track the frames, writing each record to the pose CSV (and to `also`, format name ->
     file, e.g. {"tum": "poses.tum"}, the overlay and the Rerun recording) as it comes
     (`smooth.lag` frames late: default settings when None; lag 0: unsmoothed);
-    print the summary.
+    print the summary and return the run's figures (`rows`: status and inliers per frame).
     Ctrl-C or SIGTERM keeps the finished frames in every output, then the interrupt goes
     on (exit 130 / 143)."""
     if not refine.cached_on_disk():
@@ -216,6 +228,7 @@ def track_to_files(
         ui.echo(f"       Rerun recording {rerun} (view it with: rerun {rerun})")
     if stats["interrupted"] is not None:
         raise stats["interrupted"]  # after the outputs are in place
+    return stats
 
 
 def _track(

@@ -199,6 +199,16 @@ def test_bad_input(sample_model, tmp_path, mirage):
     assert_one_line_error(mirage("track", SAMPLE / "orbit.mp4", "--model", bad), 2)
 
 
+def test_no_landmark_anywhere_is_exit_3_with_the_rows_kept(sample_model, tmp_path, mirage):
+    """Frames that never show the landmark (chessboards): every row is written, lost, and
+    the run ends with one line and exit 3, so `track && report` stops."""
+    out = tmp_path / "o.csv"
+    p = mirage("track", SAMPLE / "calibration", "--model", sample_model, "-o", out)
+    assert_one_line_error(p, 3, "not found in any of the 20 frames")
+    est = pd.read_csv(out)
+    assert len(est) == 20 and (est["status"] == "lost").all()
+
+
 def test_corrupt_frames_are_reported_and_rest_tracked(sample_model, tmp_path, mirage):
     """Unreadable images in a folder come out as decode_error; the others are tracked."""
     folder = tmp_path / "frames"
