@@ -182,23 +182,24 @@ def nothing_found(rows, out) -> None:
 
 def tracking_camera(model, model_path, camera_path, src):
     """The camera to track `src` with: the camera file, else a bag's camera_info, else the
-    model's own; it must be the model's camera (at the frames' size)."""
-    camera = model.camera
+    model's own (at the frames' size). Another camera than the model's is fine (a model
+    built from a phone's photos, a flight filmed by the drone's camera): the model is 3D
+    points and scale-invariant descriptors, and the tracker projects with this camera."""
+    camera, origin = model.camera, None
     if camera_path:
-        camera = Camera.load(camera_path)
-        if not camera.same_as(model.camera, tol_px=1.0):
-            raise InputError(
-                f"model {model_path} was built with another camera than "
-                f"{camera_path}; rebuild the model or pass the model's camera"
-            )
+        camera, origin = Camera.load(camera_path), str(camera_path)
     elif (info := src.camera()) is not None:
-        if not info.same_as(model.camera, tol_px=1.0):
-            raise InputError(
-                f"model {model_path} was built with another camera than the camera_info of "
-                f"{src.bag.topic} in {src.video}; rebuild the model or pass --camera"
-            )
-        camera = info
+        camera, origin = info, f"the camera_info of {src.bag.topic}"
+    if origin and not camera.same_as(model.camera, tol_px=1.0):
+        ui.echo(
+            f"track: the model was built with another camera ({_describe(model.camera)}); "
+            f"tracking with {origin} ({_describe(camera)})"
+        )
     return matching_camera(camera, *src.size)
+
+
+def _describe(camera: Camera) -> str:
+    return f"{camera.width}x{camera.height}, fx {camera.K[0, 0]:.0f} px"
 
 
 def track_to_files(
