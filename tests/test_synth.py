@@ -167,15 +167,31 @@ def _small_camera():
     return default_camera().scaled(160, 120)
 
 
+SAMPLE_OPENCV = "5.0."  # the OpenCV that rendered sample_data/
+
+
 def test_default_scene_unchanged_keyframe_bytes(scene):
     """The stress options left the default scene alone: keyframe 0 renders to the committed
-    JPEG byte for byte (same pose, noise seed and quality as `mirage synth`)."""
+    JPEG byte for byte (same pose, noise seed and quality as `mirage synth`) with the
+    OpenCV that made sample_data/. Other releases draw the textures' anti-aliased shapes a
+    little differently, so there the two JPEGs, decoded, must agree but for such edges
+    (5.1: mean difference 0.43 grey levels); a default scene changed by a stress option
+    differs far more (look-alike sides 1.87, tiled floor 51.9)."""
     from mirage_cli.render import stable_rng
     from mirage_cli.synth import encode_jpeg, keyframe_poses
 
     name, pose = keyframe_poses()[0]
     img = Renderer(scene, default_camera()).render(pose, 1.5, stable_rng(0, "keyframes-noise-0"))
-    assert encode_jpeg(img, 95) == (SAMPLE / "keyframes" / f"{name}.jpg").read_bytes()
+    committed = (SAMPLE / "keyframes" / f"{name}.jpg").read_bytes()
+    if cv2.__version__.startswith(SAMPLE_OPENCV):
+        assert encode_jpeg(img, 95) == committed
+        return
+    ref, now = (
+        cv2.imdecode(np.frombuffer(b, np.uint8), cv2.IMREAD_COLOR).astype(int)
+        for b in (committed, encode_jpeg(img, 95))
+    )
+    diff = np.abs(ref - now).max(axis=2)
+    assert diff.mean() < 1.0 and (diff > 2).mean() < 0.08, (diff.mean(), (diff > 2).mean())
 
 
 def test_default_orbit_truth_unchanged():
