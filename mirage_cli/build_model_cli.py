@@ -30,7 +30,7 @@ from .errors import InputError
 from .features import DETECTORS, DetectorSettings
 from .fileio import check_writable, refuse_overwrite
 from .frames import FrameSource, resolve_inputs, with_topic
-from .model import LandmarkModel
+from .model import REACH_DEG, LandmarkModel
 from .plotting import TOP_VIEW_DPI, save_png, top_view_figure
 from .validate import BoundedInt, FiniteFloat
 from .viewer import check_room, record_model, rerun_module
@@ -39,14 +39,14 @@ from .viewer import check_room, record_model, rerun_module
 def summary_lines(model: LandmarkModel) -> list[str]:
     s = model.summary()
     return [
-        f"keyframes          {s['keyframes']} ({s['detector']}, spacing {s['spacing_deg']:g} deg)",
+        f"keyframes          {s['keyframes']} ({s['detector']}, every {s['spacing_deg']:.0f} deg)",
         f"3D points          {s['points']} (linked per keyframe: min "
         f"{s['linked_per_keyframe_min']}, median {s['linked_per_keyframe_median']:.0f})",
         f"mean track length  {s['mean_track_length']:.2f} views",
         f"reprojection error mean {s['mean_reprojection_px']:.3f} px, "
         f"RMS {s['rms_reprojection_px']:.3f} px",
-        f"azimuth coverage   {s['azimuth_coverage_deg']:.0f} deg "
-        f"(largest gap {s['largest_gap_deg']:.0f} deg)",
+        f"azimuth coverage   {s['azimuth_coverage_deg']:.0f} deg within {REACH_DEG:g} deg of a "
+        f"keyframe (largest gap {s['largest_gap_deg']:.0f} deg)",
     ]
 
 

@@ -13,7 +13,7 @@ from conftest import SAMPLE, assert_one_line_error, run_mirage
 from mirage_cli.build_model import ROI, select_keyframes, triangulate
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
-from mirage_cli.model import LandmarkModel
+from mirage_cli.model import LandmarkModel, azimuth_gaps
 from mirage_cli.pose import look_at
 from mirage_cli.synth import LANDMARK_BOUNDS, landmark_surface_distance
 from mirage_cli.trajectory import poses_by_frame, read_pose_csv, row_pose
@@ -294,3 +294,15 @@ def test_from_video_skips_views_looking_away(tmp_path, mirage):
 
     err = [row_pose(r).distance_to(kf[r["frame"]]) for _, r in est.iterrows()]
     assert np.median(err) < 0.005 and max(err) < 0.03
+
+
+def test_coverage_counts_the_azimuths_within_reach_of_a_keyframe():
+    """Sparse but even views cover the orbit (measured: keyframes every 40 deg track every
+    frame); a missing side shows as its hole beyond 20 deg of the nearest keyframe."""
+    every = lambda step: np.arange(0.0, 360.0, step)  # noqa: E731
+    for step in (10, 20, 40):
+        assert azimuth_gaps(every(step)) == (step, 360.0, step)
+    holed = every(10)[(every(10) <= 30) | (every(10) >= 150)]  # 30 .. 150 unseen: 120 deg
+    gap, coverage, spacing = azimuth_gaps(holed)
+    assert gap == 120 and coverage == 280 and spacing == 10
+    assert azimuth_gaps(np.r_[every(10), every(10) + 0.01]) == (10, 360.0, 10)  # two heights
