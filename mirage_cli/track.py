@@ -71,6 +71,8 @@ class TrackSettings:
     flow_keep: float = 0.5  # fewer of the detected points still followed: detect afresh
     flow_max_dev_sigma: float = 4.0  # flowed pose this many sigmas off the prediction: detect
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
+    flow_gain_tol: float = 0.05  # the exposure changed more since the anchor: flow again
+    # in the frame scaled to the anchor's brightness (Lucas-Kanade assumes it constant)
     local_keyframes: int = 4  # keyframes near the previous pose to match against
     global_keyframes: int = 3  # keyframes proposed by recognition when lost
     relocalise_every: int = 3  # while lost: the whole frame every N frames, a half-size
@@ -183,6 +185,21 @@ def _forget_worker() -> None:
 os.register_at_fork(after_in_child=_forget_worker)
 
 
+def _local_means(gray: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Mean of the 7x7 pixels around each point (nearest pixel; 0 outside the image)."""
+    h, w = gray.shape[:2]
+    ij = np.rint(px).astype(np.int64)
+    inside = (ij[:, 0] >= 3) & (ij[:, 0] < w - 3) & (ij[:, 1] >= 3) & (ij[:, 1] < h - 3)
+    out = np.zeros(len(px))
+    if inside.any():
+        ii = ij[inside]
+        x0, y0 = ii.min(axis=0) - 3
+        x1, y1 = ii.max(axis=0) + 4
+        area = cv2.blur(gray[y0:y1, x0:x1], (7, 7), borderType=cv2.BORDER_REPLICATE)
+        out[inside] = area[ii[:, 1] - y0, ii[:, 0] - x0]
+    return out
+
+
 def _deviation(res: FrameRecord, pred: Pose) -> float:
     """How far a pose is from its prediction, in the position sigmas of its residuals."""
     return res.pose.distance_to(pred) / max(sigmas(res.measurement.cov)[0], 1e-9)
@@ -221,6 +238,7 @@ class Tracker:
         self.anchor_gray: np.ndarray | None = None
         self.anchor_px: np.ndarray | None = None  # (N,2) float32, rows of track_px
         self.anchor_n = 0  # points detected in the anchor
+        self._anchor_level: np.ndarray | None = None  # their 7x7 means (flow's gain check)
         self._kf_cache: dict[int, tuple] = {}
         self.twins = point_twins(model)  # the model's tables, built before the first frame
         model.prepare_recognition()
@@ -271,6 +289,7 @@ class Tracker:
             if res.ok:
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
+                self._anchor_level = None
                 self._anchor_no = self._frame_no
         if res.measurement is not None:  # flowed points share their anchor's errors
             res.measurement.anchor = self._anchor_no if res.mode == "flow" else self._frame_no
@@ -331,20 +350,19 @@ class Tracker:
         guess = self.track_px
         if self.velocity is not None and np.all(pred.transform(self.track_X)[:, 2] > 1e-3):
             guess = self.camera.project(self.track_X, pred).astype(np.float32)
-        try:  # from the anchor image: the error does not add up from frame to frame
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(
-                self.anchor_gray, gray, a0, guess.reshape(-1, 1, 2).copy(), **lk
-            )
-            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.anchor_gray, p1, a0.copy(), **lk)
-        except cv2.error:
+        tracked = self._lucas_kanade(gray, a0, guess, lk)
+        if tracked is None:
             return None
-        p1, p0r = p1.reshape(-1, 2), p0r.reshape(-1, 2)
-        fb = np.linalg.norm(p0r - self.anchor_px, axis=1)
-        h, w = gray.shape[:2]
-        good = (
-            (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.s.flow_fb_px)
-            & (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
-        )  # fmt: skip
+        # Lucas-Kanade assumes constant brightness: when the exposure changed since the
+        # anchor (auto-exposure; measured where the points flowed), flow again in the
+        # frame scaled to the anchor's brightness (the first pass's points are biased)
+        gain = self._gain(gray, *tracked)
+        if abs(gain - 1) > self.s.flow_gain_tol:
+            gray = cv2.convertScaleAbs(gray, alpha=gain)
+            tracked = self._lucas_kanade(gray, a0, guess, lk)
+            if tracked is None:
+                return None
+        p1, good = tracked
         if good.sum() < max(self.s.min_flow_points, self.s.flow_keep * self.anchor_n):
             return None  # the flow has weakened: detect afresh
         X, uv = self.track_X[good], p1[good]
@@ -371,8 +389,36 @@ class Tracker:
             self.track_px, self.track_X = uv[est.inliers].astype(np.float32), X[est.inliers]
             self.track_land = land[est.inliers]
             self.anchor_px = self.anchor_px[good][est.inliers]
+            self._anchor_level = self._anchor_level[good][est.inliers]
             res.inlier_px = self.track_px
         return res
+
+    def _lucas_kanade(self, gray, a0, guess, lk) -> tuple[np.ndarray, np.ndarray] | None:
+        """The anchor's points in `gray` (N,2) and which of them flowed well (both ways)."""
+        try:  # from the anchor image: the error does not add up from frame to frame
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(
+                self.anchor_gray, gray, a0, guess.reshape(-1, 1, 2).copy(), **lk
+            )
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.anchor_gray, p1, a0.copy(), **lk)
+        except cv2.error:
+            return None
+        p1, p0r = p1.reshape(-1, 2), p0r.reshape(-1, 2)
+        fb = np.linalg.norm(p0r - self.anchor_px, axis=1)
+        h, w = gray.shape[:2]
+        good = (
+            (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.s.flow_fb_px)
+            & (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+        )  # fmt: skip
+        return p1, good
+
+    def _gain(self, gray: np.ndarray, p1: np.ndarray, good: np.ndarray) -> float:
+        """The anchor's brightness over this frame's at the well-flowed points: the median
+        ratio of their 7x7 means, the same surface in both (1 with too few points)."""
+        if self._anchor_level is None:
+            self._anchor_level = _local_means(self.anchor_gray, self.anchor_px)
+        then, now = self._anchor_level[good], _local_means(gray, p1[good])
+        ok = (now > 8) & (then > 8)  # dark points say little about the gain
+        return float(np.median(then[ok] / now[ok])) if ok.sum() >= 10 else 1.0
 
     def _detect_ahead(self, ahead, shape, calm: bool = False) -> None:
         """A frame was just detected: if flow holds, the next detection comes
