@@ -4,10 +4,11 @@ Scenes are rendered with `mirage synth` (cached under benchmarks/.cache/, keyed 
 scene's synth options, so later runs only track): a floor of repeated tiles with a
 look-away, a pole passing in front of the landmark, look-alike opposite sides, motion
 blur, far orbits at 2.5 m and 4 m from keyframes at 1.4 m (landmark ~70 px tall at 4 m),
-twice the speed with its motion blur, heavy JPEG compression with noise, and the tiled
-floor with the pole seen from 2.5 m (the floor fills much of the view), plus the committed
-sample orbit. Every system gets the same landmark model, built from
-the scene's keyframes with `build-model`'s defaults, and the same decoded frames:
+twice the speed with its motion blur, heavy JPEG compression with noise, the tiled floor
+with the pole seen from 2.5 m (the floor fills much of the view), auto-exposure hunting
+(+-50% gain on the decoded frames), keyframes from higher up than the video and the tiled
+floor from 4 m, plus the committed sample orbit. Every system gets the same landmark model,
+built from the scene's keyframes with `build-model`'s defaults, and the same decoded frames:
 
 - mirage: our tracker with its default settings (`mirage track`: each pose smoothed with
   the 15 frames before and after it);
@@ -96,6 +97,7 @@ class SceneSpec:
     keyframe_args: list[str] | None  # None: the committed sample keyframes
     orbit_args: list[str] = field(default_factory=list)
     look_away: tuple[float, float] | None = None  # as shares of the video length
+    exposure: float = 0.0  # auto-exposure hunting: the decoded frames' gain swings by this
 
 
 TILES = ["--floor-tiles", "0.75"]
@@ -121,6 +123,9 @@ SCENES = {
     "farpole": SceneSpec(
         "far 2.5 m + pole + tiles", TILES, TILES + ["--pole", "--video-radius", "2.5"]
     ),
+    # the gain swings +-50% (1.5 s period) and steps down by a quarter halfway, applied to
+    # the decoded frames of a plain orbit (OpenCV rounds and clips to 0-255 as a camera)
+    "exposure": SceneSpec("auto-exposure +-50%", None, [], exposure=0.5),
     "high": SceneSpec("keyframes from 1.1 m high", ["--heights", "1.1"], []),
     "far4tiles": SceneSpec("far 4 m + tiles", TILES, TILES + ["--video-radius", "4.0"]),
 }
@@ -161,10 +166,18 @@ def scene_data(name: str, frames: int, jobs: int) -> tuple[Path, Path]:
     return _synth(Path(name), args, jobs), kf
 
 
-def load_frames(video: Path) -> tuple[list[np.ndarray], float]:
+def load_frames(video: Path, exposure: float = 0.0) -> tuple[list[np.ndarray], float]:
     t0 = time.perf_counter()
     frames = [f.image for f in FrameSource([video]).frames()]
-    return frames, len(frames) / (time.perf_counter() - t0)
+    rate = len(frames) / (time.perf_counter() - t0)
+    if exposure:
+        n = len(frames)
+        for i, img in enumerate(frames):
+            gain = (1 + exposure * np.sin(2 * np.pi * i / FPS / 1.5)) * (
+                1.0 if i < n // 2 else 1 - exposure / 2
+            )
+            frames[i] = cv2.convertScaleAbs(img, alpha=gain)
+    return frames, rate
 
 
 def get_model(keyframes: Path, camera: Camera) -> LandmarkModel:
@@ -424,7 +437,7 @@ def main():
     for s in scenes:
         folder, kf = data[s]
         truth = read_pose_csv(folder / "orbit_truth.csv")
-        frames, decode[s] = load_frames(folder / "orbit.mp4")
+        frames, decode[s] = load_frames(folder / "orbit.mp4", SCENES[s].exposure)
         model = get_model(kf, camera)
         for sy in systems:
             res, sec = SYSTEMS[sy](frames, model, camera)
