@@ -6,8 +6,9 @@ look-away, a pole passing in front of the landmark, look-alike opposite sides, m
 blur, far orbits at 2.5 m and 4 m from keyframes at 1.4 m (landmark ~70 px tall at 4 m),
 twice the speed with its motion blur, heavy JPEG compression with noise, the tiled floor
 with the pole seen from 2.5 m (the floor fills much of the view), auto-exposure hunting
-(+-50% gain on the decoded frames), keyframes from higher up than the video and the tiled
-floor from 4 m, plus the committed sample orbit. Every system gets the same landmark model,
+(+-50% gain on the decoded frames), a near orbit at 0.9 m (the landmark overflows the
+frame), keyframes from higher up than the video and the tiled floor from 4 m, plus the
+committed sample orbit. Every system gets the same landmark model,
 built from the scene's keyframes with `build-model`'s defaults, and the same decoded frames:
 
 - mirage: our tracker with its default settings (`mirage track`: each pose smoothed with
@@ -126,6 +127,7 @@ SCENES = {
     # the gain swings +-50% (1.5 s period) and steps down by a quarter halfway, applied to
     # the decoded frames of a plain orbit (OpenCV rounds and clips to 0-255 as a camera)
     "exposure": SceneSpec("auto-exposure +-50%", None, [], exposure=0.5),
+    "near": SceneSpec("near orbit 0.9 m", None, ["--video-radius", "0.9"]),
     "high": SceneSpec("keyframes from 1.1 m high", ["--heights", "1.1"], []),
     "far4tiles": SceneSpec("far 4 m + tiles", TILES, TILES + ["--video-radius", "4.0"]),
 }
