@@ -86,6 +86,10 @@ class TrackSettings:
     # model's points plus this margin (-1: always the whole frame)
     upsample_below_px: int = 320  # a smaller detection box (longer side, px; 0: never)...
     upsample_to_px: int = 480  # ...is upsampled to this size before detection
+    shrink_above: float = 1.5  # the landmark looks this many times larger than from its
+    # nearest keyframe (a sharper camera than the model's, or nearer): the detection box
+    # is shrunk by that factor first (the keyframes hold no finer features; SIFT's time
+    # goes with the pixels)
     second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
@@ -200,6 +204,11 @@ def _local_means(gray: np.ndarray, px: np.ndarray) -> np.ndarray:
     return out
 
 
+def _median_depth(pose: Pose, points: np.ndarray) -> float:
+    """Median depth of the points seen from `pose` (0 without any)."""
+    return float(np.median(pose.transform(points)[:, 2])) if len(points) else 0.0
+
+
 def _deviation(res: FrameRecord, pred: Pose) -> float:
     """How far a pose is from its prediction, in the position sigmas of its residuals."""
     return res.pose.distance_to(pred) / max(sigmas(res.measurement.cov)[0], 1e-9)
@@ -259,6 +268,14 @@ class Tracker:
         # the ground near the landmark steadies the pose, so it counts)
         P = model.points
         self._model_X = P[:: max(1, len(P) // 2000)] if len(P) else None
+        # the landmark's scale in a frame against its keyframes: their median point depth
+        # and the focal lengths (a model from one camera may track another's video)
+        kfs = model.keyframes
+        self._kf_points = [P[np.unique(kf.point_ids[kf.point_ids >= 0])] for kf in kfs]
+        self._kf_depth = np.array(
+            [_median_depth(kf.pose, X) for kf, X in zip(kfs, self._kf_points, strict=True)]
+        )
+        self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
 
@@ -441,10 +458,10 @@ class Tracker:
         boxes = [self._model_box(p, shape) for p in (self.prev_pose, self._predicted(k))]
         box = None
         if all(b is not None for b in boxes):
-            (a0, a1, a2, a3), (b0, b1, b2, b3) = boxes
+            (a0, a1, a2, a3, ash), (b0, b1, b2, b3, bsh) = boxes
             if max(b2 - b0, b3 - b1, a2 - a0, a3 - a1) < self.s.upsample_below_px:
                 return
-            box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3))
+            box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3), min(ash, bsh))
         self._held_box = (self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
         if calm:
             self._start(*self._held_box)
@@ -514,10 +531,13 @@ class Tracker:
         """Features in the pixel box (None: the whole frame), a small box upsampled first."""
         if box is None:
             return detect(gray, detector)
-        x0, y0, x1, y1 = box
+        x0, y0, x1, y1, shrink = box
         crop = gray[y0:y1, x0:x1]
         up = 1.0
-        if max(crop.shape) < self.s.upsample_below_px:  # small and far: finer features
+        if shrink > 1:  # the landmark larger than in its keyframes: at their scale
+            up = 1 / shrink
+            crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_AREA)
+        elif max(crop.shape) < self.s.upsample_below_px:  # small and far: finer features
             up = self.s.upsample_to_px / max(crop.shape)
             crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
         kps, desc = detect(crop, detector)
@@ -565,10 +585,11 @@ class Tracker:
             return FrameRecord(Status.LOST, mode="relocalise")
         return self._relocalise(kps, desc)
 
-    def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int] | None:
+    def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int, float] | None:
         """Pixel box (x0, y0, x1, y1) around the model's points as the predicted pose sees
-        them, with a margin: nothing outside it can match. None when it would cover most of
-        the frame anyway (or too few points are predicted in front), so the whole frame is
+        them, with a margin: nothing outside it can match; and the factor to shrink it by
+        before detection (`shrink_above`; 1: none). None when it would cover most of the
+        frame anyway (or too few points are predicted in front), so the whole frame is
         searched."""
         if self.s.detect_margin_px < 0 or self._model_X is None:
             return None
@@ -585,7 +606,13 @@ class Tracker:
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
         if x1 - x0 < 32 or y1 - y0 < 32 or (x1 - x0) * (y1 - y0) > 0.7 * w * h:
             return None
-        return int(x0), int(y0), int(x1), int(y1)
+        shrink = 1.0
+        if len(self._kf_depth):
+            kf = self.model.nearest_keyframes(pred, 1)[0]  # its points, then and now
+            depth = _median_depth(pred, self._kf_points[kf])
+            larger = self._focal_ratio * self._kf_depth[kf] / depth if depth > 0 else 1.0
+            shrink = round(larger, 2) if larger >= self.s.shrink_above else 1.0
+        return int(x0), int(y0), int(x1), int(y1), shrink
 
     def _guided(self, kps, desc, pred: Pose) -> FrameRecord:
         """Tracking: match near the predicted projections of the nearby keyframes' points."""
