@@ -492,15 +492,15 @@ def test_flow_holds_through_auto_exposure_steps(sample_model):
 def test_a_sharper_camera_detects_at_the_keyframes_scale(sample_model, tmp_path, mirage):
     """Video at twice the model's resolution (the sample orbit upscaled, its camera scaled):
     the landmark looks ~1.75x larger than from its keyframes, so the detection box is shrunk
-    by that factor before SIFT (the keyframes hold no finer features), and every frame
-    tracks to the truth."""
+    by that factor / 1.25 before SIFT (the keyframes hold no finer features), and every
+    frame tracks to the truth."""
     model = LandmarkModel.load(sample_model)
     cam2 = model.camera.scaled(1280, 960)
     cam2.save(tmp_path / "cam2.yaml")
     truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
     tracker = Tracker(model, cam2, TrackSettings())
     box = tracker._model_box(row_pose(truth.iloc[0]), (960, 1280))
-    assert 1.6 < box[4] < 1.9, box  # 1.4 m keyframes, the orbit at 1.6 m, 2x the pixels
+    assert 1.3 < box[4] < 1.5, box  # 1.4 m keyframes, the orbit at 1.6 m, 2x the pixels
     frames = tmp_path / "frames"
     frames.mkdir()
     picked = list(range(0, 150, 5))
