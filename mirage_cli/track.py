@@ -534,7 +534,8 @@ class Tracker:
         return kps * np.float32(2) + np.float32(0.5), desc
 
     def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
-        """Features in the pixel box (None: the whole frame), a small box upsampled first."""
+        """Features in the pixel box (None: the whole frame): shrunk first when the landmark
+        looks larger than from its keyframes, else upsampled when the box is small."""
         if box is None:
             return detect(gray, detector)
         x0, y0, x1, y1, shrink = box
