@@ -331,7 +331,7 @@ def _track_and_report(flight: Flight, d: Path) -> FlightResult:
     desired = load_path(flight.path)
     model = LandmarkModel.load(flight.model)
     src = FrameSource([flight.video])
-    camera = tracking_camera(model, flight.model, flight.camera, src)
+    camera = tracking_camera(model, flight.camera, src)
     first, last = frame_range(flight.start, flight.end, src.fps)
     tracker = Tracker(model, camera, TrackSettings())
     track_to_files(src, tracker, d / "poses.csv", first, last)

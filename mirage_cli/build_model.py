@@ -32,7 +32,7 @@ from .camera import Camera
 from .errors import InputError
 from .features import DetectorSettings, detect, make_detector, make_matcher, ratio_match
 from .frames import FrameSource, read_image, resolve_inputs
-from .model import REACH_DEG, Keyframe, LandmarkModel, azimuth_gaps, make_thumbnail
+from .model import REACH_DEG, Keyframe, LandmarkModel, largest_azimuth_gap, make_thumbnail
 from .pose import Pose
 from .trajectory import poses_by_frame, read_pose_csv
 
@@ -554,12 +554,8 @@ def _max_angle(X, kf, track, poses, n) -> np.ndarray:
 def coverage_warning(model: LandmarkModel) -> str | None:
     """The largest azimuth gap, if it leaves frames further than `REACH_DEG` from every
     keyframe (where tracking was measured to fail)."""
-    gap, _, _ = azimuth_gaps(model.azimuths())
+    gap, lo, hi = largest_azimuth_gap(model.azimuths())
     if gap > 2 * REACH_DEG:
-        a = np.unique(np.round(np.mod(model.azimuths(), 360.0), 1))
-        gaps = np.diff(np.concatenate([a, [a[0] + 360.0]]))
-        k = int(np.argmax(gaps))
-        lo, hi = a[k], np.mod(a[k] + gaps[k], 360)
         return (
             f"azimuth gap of {gap:.0f} deg between {lo:.0f} and {hi:.0f} deg: frames more "
             f"than {REACH_DEG:g} deg from a keyframe may not be tracked (measured: a 100 deg "

@@ -454,12 +454,27 @@ def azimuth_gaps(azimuths_deg, reach_deg: float = REACH_DEG) -> tuple[float, flo
     degrees. Coverage: the azimuths within `reach_deg` of a keyframe, where a frame is
     tracked whatever the keyframes' nominal spacing (36 views every 10 deg, 18 every 20 and
     9 every 40 all cover 360 deg; a missing side shows as its hole beyond the reach)."""
-    a = np.unique(np.round(np.mod(np.asarray(azimuths_deg, float), 360.0), 1))
+    a, gaps = _azimuth_steps(azimuths_deg)
     if a.size == 0:
         return 360.0, 0.0, 0.0
-    gaps = np.diff(np.concatenate([a, [a[0] + 360.0]]))
     excess = np.clip(gaps - 2 * reach_deg, 0, None).sum()
     return float(gaps.max()), float(np.clip(360.0 - excess, 0.0, 360.0)), float(np.median(gaps))
+
+
+def largest_azimuth_gap(azimuths_deg) -> tuple[float, float, float]:
+    """(size, from, to) of the largest gap between neighbouring keyframe azimuths, deg."""
+    a, gaps = _azimuth_steps(azimuths_deg)
+    if a.size == 0:
+        return 360.0, 0.0, 360.0
+    k = int(np.argmax(gaps))
+    return float(gaps[k]), float(a[k]), float(np.mod(a[k] + gaps[k], 360.0))
+
+
+def _azimuth_steps(azimuths_deg) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct azimuths in [0, 360) (to 0.1 deg: elevation bands share them) and the gap
+    from each to the next, around the circle."""
+    a = np.unique(np.round(np.mod(np.asarray(azimuths_deg, float), 360.0), 1))
+    return a, np.diff(np.concatenate([a, a[:1] + 360.0]))
 
 
 def _sha(a: np.ndarray) -> str:

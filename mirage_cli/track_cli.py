@@ -147,7 +147,7 @@ def track_cmd(
         check_room(rerun_path)
     model = LandmarkModel.load(require_file(model_path, "model file"))
     src = FrameSource(with_topic(video, topic), fps=fps)
-    camera = tracking_camera(model, model_path, camera_path, src)
+    camera = tracking_camera(model, camera_path, src)
     first, last = frame_range(start, end, src.fps)  # an empty range fails before any output
     if src.count == 0 and src.is_video:
         ui.log.warning(f"{src.video}: frame count unknown; reading until the end")
@@ -180,7 +180,7 @@ def nothing_found(rows, out) -> None:
     )
 
 
-def tracking_camera(model, model_path, camera_path, src):
+def tracking_camera(model, camera_path, src):
     """The camera to track `src` with: the camera file, else a bag's camera_info, else the
     model's own (at the frames' size). Another camera than the model's is fine (a model
     built from a phone's photos, a flight filmed by the drone's camera): the model is 3D
