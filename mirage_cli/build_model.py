@@ -27,6 +27,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from . import model_check
 from .boards import Board, BoardPoser
 from .camera import Camera
 from .errors import InputError
@@ -48,6 +49,7 @@ class ROI:
 
     kind: str = "none"  # none | cylinder | box | auto
     values: tuple = ()
+    reason: str = ""  # why 'auto' resolved to this
 
     @classmethod
     def parse(cls, text: str | None) -> ROI:
@@ -73,14 +75,21 @@ class ROI:
         )
 
     def resolved(self, poses: list[Pose]) -> ROI:
-        """'auto': a cylinder inside the ring of cameras (85% of the nearest camera's
-        horizontal distance), from 0.2 m below the ground to 0.5 m above the highest
-        camera. Keeps the landmark and the ground near it, drops the far background."""
+        """'auto': when the cameras circle W's origin, a cylinder inside their ring (85% of
+        the nearest camera's horizontal distance), from 0.2 m below the ground to 0.5 m
+        above the highest camera: it keeps the landmark and the ground near it and drops
+        the far background. Otherwise (a camera path along one side, a forward motion)
+        'none': a volume about the origin would mean nothing there (`reason` says which)."""
         if self.kind != "auto":
             return self
+        if not surrounds_origin(poses):
+            return ROI("none", (), "the views do not circle W's origin")
         c = np.array([p.center for p in poses])
         r = 0.85 * float(np.min(np.hypot(c[:, 0], c[:, 1])))
-        return ROI("cylinder", (max(r, 0.05), -0.2, float(c[:, 2].max()) + 0.5))
+        return ROI(
+            "cylinder", (max(r, 0.05), -0.2, float(c[:, 2].max()) + 0.5),
+            "inside the ring of views",
+        )  # fmt: skip
 
     def contains(self, X: np.ndarray) -> np.ndarray:
         if self.kind == "cylinder":
@@ -120,6 +129,7 @@ class View:
     pose: Pose
     path: Path | None = None
     image: np.ndarray | None = None  # grey
+    reason: str = ""  # why it was kept as a keyframe
 
 
 # --------------------------------------------------------------------------------------
@@ -144,12 +154,67 @@ def view_direction(pose: Pose) -> tuple[float, float]:
     return pose.azimuth_deg, float(np.degrees(np.arctan2(c[2], np.hypot(c[0], c[1]))))
 
 
+def look_at_point(poses: list[Pose]) -> np.ndarray:
+    """The point the views look at: closest (least squares) to every optical axis. W's
+    origin when the axes are nearly parallel (a camera moving straight ahead) or the
+    point would lie behind most of the cameras."""
+    if len(poses) < 2:
+        return np.zeros(3)
+    C = np.array([p.center for p in poses])
+    A = np.array([p.R[2] for p in poses])  # optical axes in W
+    proj = np.eye(3)[None] - A[:, :, None] * A[:, None, :]
+    M, b = proj.sum(axis=0), np.einsum("nij,nj->i", proj, C)
+    w = np.linalg.eigvalsh(M)
+    if w[0] < 0.01 * len(poses):  # axes within ~6 deg of parallel: no crossing point
+        return np.zeros(3)
+    P = np.linalg.solve(M, b)
+    if np.mean(np.einsum("ni,ni->n", P - C, A) > 0) < 0.8:
+        return np.zeros(3)
+    return P
+
+
+def view_change(poses: list[Pose], centre: np.ndarray | None = None) -> np.ndarray:
+    """(n, n) how different two views are, in degrees: the largest of the angle between
+    their optical axes, the parallax of their baseline at the scene's depth, and their
+    change of scale (|ln| of the depth ratio, in radians as degrees). A ring of views
+    every 10 deg gives 10 deg; so does a camera that moved sideways by a sixth of its
+    distance, or forward by a tenth."""
+    if centre is None:
+        centre = look_at_point(poses)
+    C = np.array([p.center for p in poses])
+    A = np.array([p.R[2] for p in poses])
+    depth = np.maximum(np.linalg.norm(C - centre, axis=1), 1e-6)
+    axes = np.degrees(np.arccos(np.clip(A @ A.T, -1.0, 1.0)))
+    base = np.linalg.norm(C[:, None] - C[None], axis=2)
+    parallax = np.degrees(base / (0.5 * (depth[:, None] + depth[None])))
+    scale = np.degrees(np.abs(np.log(depth[:, None] / depth[None])))
+    return np.maximum(np.maximum(axes, parallax), scale)
+
+
+def surrounds_origin(poses: list[Pose]) -> bool:
+    """Do the views circle W's origin (no gap of half a turn in their azimuths)?"""
+    if len(poses) < 3:
+        return False
+    return largest_azimuth_gap([p.azimuth_deg for p in poses])[0] < 180.0
+
+
+ADD_CHANGE = 0.6  # of the spacing: a view halfway between two of a ring (0.5) adds nothing
+
+
 def select_keyframes(
-    poses: list[Pose], spacing_deg: float, max_offaxis_deg: float = 35.0
+    poses: list[Pose],
+    spacing_deg: float,
+    max_offaxis_deg: float = 35.0,
+    reasons: dict[int, str] | None = None,
+    by_change: bool = True,
 ) -> list[int]:
-    """Indices of one view per azimuth bin (and elevation band when heights differ),
-    the one nearest the bin centre among those looking at the landmark (W's origin within
-    `max_offaxis_deg` of the optical axis); ordered by band, then azimuth."""
+    """Indices of the keyframes: one view per azimuth bin (and elevation band when heights
+    differ), the one nearest the bin centre among those looking at the landmark (the
+    point the views look at within `max_offaxis_deg` of the optical axis); then every
+    other such view that differs from all kept ones by `ADD_CHANGE` of the spacing or more
+    (`view_change`: a camera that moves sideways or forward changes its view without
+    changing its azimuth). Ordered by band, then azimuth, then the added views in input
+    order. `reasons`, when given, gets why each was kept."""
     if not poses:
         return []
     az, el = np.array([view_direction(p) for p in poses]).T
@@ -162,12 +227,14 @@ def select_keyframes(
     pos = np.mod(az, 360.0) / (360.0 / nbins)
     bins = np.mod(np.round(pos).astype(int), nbins)
     off = np.abs(pos - np.round(pos))
-    # views that look away from the landmark (W's origin far off the optical axis) see
-    # little of it: never pick them while another view exists
+    # views that look away from the landmark (far off the optical axis) see little of it:
+    # never pick them while another view exists
+    centre = look_at_point(poses)
     centers = np.array([p.center for p in poses])
     axes = np.array([p.R[2] for p in poses])  # optical axis in W (third row of R_CW)
-    to_origin = -centers / np.maximum(np.linalg.norm(centers, axis=1, keepdims=True), 1e-9)
-    offaxis = np.degrees(np.arccos(np.clip(np.sum(axes * to_origin, axis=1), -1.0, 1.0)))
+    to_c = centre - centers
+    to_c /= np.maximum(np.linalg.norm(to_c, axis=1, keepdims=True), 1e-9)
+    offaxis = np.degrees(np.arccos(np.clip(np.sum(axes * to_c, axis=1), -1.0, 1.0)))
     usable = offaxis <= max_offaxis_deg
     if not usable.any():
         usable[:] = True
@@ -175,7 +242,29 @@ def select_keyframes(
     for i in np.lexsort((np.arange(len(poses)), off)):  # nearest to the bin centre first
         if usable[i]:
             best.setdefault((int(bands[i]), int(bins[i])), int(i))
-    return [best[k] for k in sorted(best)]
+    keep = [best[k] for k in sorted(best)]
+    if reasons is not None:
+        reasons.update({i: f"azimuth {np.mod(az[i], 360):.0f} deg" for i in keep})
+    change = view_change(poses, centre) if by_change else None
+    for i in np.flatnonzero(usable) if by_change else ():
+        if i in best.values():
+            continue
+        d = float(change[i, keep].min())
+        if d >= ADD_CHANGE * spacing_deg:
+            keep.append(int(i))
+            if reasons is not None:
+                reasons[int(i)] = f"view change {d:.1f} deg"
+    return keep
+
+
+def _select(views: list, settings) -> list:
+    """The keyframe views, each with why it was kept."""
+    reasons: dict[int, str] = {}
+    idx = select_keyframes([v.pose for v in views], settings.spacing_deg, reasons=reasons)
+    out = [views[i] for i in idx]
+    for i, v in zip(idx, out, strict=True):
+        v.reason = reasons.get(i, "")
+    return out
 
 
 def views_from_inputs(
@@ -214,7 +303,7 @@ def views_from_inputs(
                 + ", ".join(missing[:5])
                 + (" ..." if len(missing) > 5 else "")
             )
-        keep = [views[i] for i in select_keyframes([v.pose for v in views], settings.spacing_deg)]
+        keep = _select(views, settings)
         for k, v in enumerate(keep):
             img = read_image(v.path, gray=True)
             _check_size(img, camera, v.name)
@@ -243,7 +332,7 @@ def views_from_inputs(
     _need_two(views, "images where the board gives a reliable pose")
     for msg in skipped:  # only once the build goes on: an error says everything itself
         log.warning(msg)
-    return [views[i] for i in select_keyframes([v.pose for v in views], settings.spacing_deg)]
+    return _select(views, settings)
 
 
 def _need_two(views: list, what: str) -> None:
@@ -271,7 +360,10 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
                 f"pose file {poses_csv} has no rows with frame numbers for video {video.name}"
             )
         idx = sorted(frames)
-        sel = [idx[i] for i in select_keyframes([frames[i] for i in idx], settings.spacing_deg)]
+        why: dict[int, str] = {}
+        chosen = select_keyframes([frames[i] for i in idx], settings.spacing_deg, reasons=why)
+        sel = [idx[i] for i in chosen]
+        reason = {idx[i]: why.get(i, "") for i in chosen}
         _need_two(sel, "video frames with a pose")
         wanted = set(sel)
         got: dict[int, np.ndarray] = {}
@@ -285,7 +377,9 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
         lost = sorted(wanted - set(got))
         if lost:
             log.warning(f"frames {lost[:5]} of {video.name} could not be read; skipped")
-        views = [View(f"frame_{i:06d}", frames[i], None, got[i]) for i in sel if i in got]
+        views = [
+            View(f"frame_{i:06d}", frames[i], None, got[i], reason[i]) for i in sel if i in got
+        ]
         _need_two(views, "readable video frames with a pose")
         return views
     poser = BoardPoser(board, camera)
@@ -300,13 +394,14 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
             cand.append(View(f"frame_{i:06d}", pose, None, frame))
             # keep memory bounded: reselect whenever the candidates pile up
             if len(cand) > 4 * 360 / settings.spacing_deg:
-                cand = [cand[j] for j in select_keyframes([v.pose for v in cand], 1.0)]
+                sel = select_keyframes([v.pose for v in cand], 1.0, by_change=False)
+                cand = [cand[j] for j in sel]
         if progress:
             progress(i // step + 1, max(1, src.count // step))
     if bad:
         log.warning(f"{bad} sampled frame(s) of {video.name} skipped: no reliable board pose")
     _need_two(cand, "video frames where the board gives a reliable pose")
-    return [cand[j] for j in select_keyframes([v.pose for v in cand], settings.spacing_deg)]
+    return _select(cand, settings)
 
 
 # --------------------------------------------------------------------------------------
@@ -316,19 +411,32 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
-def keyframe_pairs(poses: list[Pose], spacing_deg: float, neighbours: int = 2) -> list:
+def keyframe_pairs(
+    poses: list[Pose], spacing_deg: float, neighbours: int = 2, max_change_deg: float = 60.0
+) -> list:
     """Pairs of keyframes that see the landmark from directions at most `neighbours`
     spacings apart (1- and 2-apart neighbours by default, across elevation bands too).
-    The spacing is the nominal one or the typical angle between neighbouring views."""
+    The spacing is the nominal one or the typical angle between neighbouring views. Each
+    keyframe is also paired with its 2 x `neighbours` most similar views (`view_change`
+    below `max_change_deg`, beyond which features rarely match), so that a view further
+    from the others than is typical (or a path that is not a ring) still gets points."""
+    if len(poses) < 2:
+        return []
     dirs = np.array([p.center for p in poses])
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     ang = np.degrees(np.arccos(np.clip(dirs @ dirs.T, -1, 1)))
-    if len(poses) < 2:
-        return []
     # views sparser than the nominal spacing (e.g. every 30 deg) still pair with neighbours
     nearest = np.sort(ang + np.diag(np.full(len(poses), np.inf)), axis=1)[:, 0]
     lim = (neighbours + 0.5) * max(spacing_deg, float(np.median(nearest)))
-    i, j = np.nonzero(np.triu(ang <= lim, 1))
+    near = ang <= lim
+    change = view_change(poses) + np.diag(np.full(len(poses), np.inf))
+    k = min(2 * neighbours, len(poses) - 1)
+    similar = np.argsort(change, axis=1, kind="stable")[:, :k]
+    rows = np.repeat(np.arange(len(poses)), k)
+    ok = change[rows, similar.ravel()] <= max_change_deg
+    near[rows[ok], similar.ravel()[ok]] = True
+    near |= near.T
+    i, j = np.nonzero(np.triu(near, 1))
     return list(zip(i.tolist(), j.tolist(), strict=True))
 
 
@@ -458,6 +566,9 @@ def build_model(
     tr = build_tracks(matches, offsets)
     roi = settings.roi.resolved(poses)
     X, kf, feat, track, rejected = _triangulate_tracks(tr, norm, kps, poses, camera, settings, roi)
+    check = _check(X, kf, feat, track, norm, kps, poses, camera, settings)
+    if progress:
+        progress("checking", 1, 1)
     point_ids = [np.full(len(k), -1, np.int32) for k in kps]
     for i in range(len(views)):
         m = kf == i
@@ -468,7 +579,9 @@ def build_model(
     ]
     meta = {
         "spacing_deg": settings.spacing_deg,
-        "roi": {"kind": roi.kind, "values": list(roi.values)},
+        "roi": {"kind": roi.kind, "values": list(roi.values), "reason": roi.reason},
+        "kept": {v.name: v.reason for v in views if v.reason},
+        "check": model_check.summary(check, [v.name for v in views]),
         "max_reproj_px": settings.max_reproj_px,
         "min_angle_deg": settings.min_angle_deg,
         "ratio": settings.ratio,
@@ -476,6 +589,31 @@ def build_model(
     model = LandmarkModel(camera, settings.detector, keyframes, X, meta=meta)
     n_matches = int(sum(len(m[2]) for m in matches))
     return BuildResult(model, len(pairs), n_matches, tr.n, rejected)
+
+
+def _check(X, kf, feat, track, norm, kps, poses, camera, settings) -> list:
+    """Leave-one-keyframe-out check of the model (model_check.py), with the tracker's
+    covariance of a pose."""
+    from .track import TrackSettings, frame_covariances
+
+    if not len(X):
+        return []
+    offsets = np.concatenate([[0], np.cumsum([len(k) for k in kps])]).astype(np.int64)
+    at = offsets[kf] + feat
+    x = np.concatenate(norm)[at]
+    uv = np.concatenate(kps).astype(np.float64)[at]
+    err = _reproj(X[track], kf, uv, poses, camera)
+    rms = float(np.sqrt(np.mean(err**2))) if len(err) else 0.0
+    ts = TrackSettings()
+
+    def covariances(est, n, points):
+        return frame_covariances(
+            est, n, camera, points, ts.huber_px, rms, ts.model_error_points, 1.0
+        )
+
+    return model_check.check_keyframes(
+        x, uv, kf, track, poses, camera, settings.max_reproj_px, covariances, triangulate
+    )
 
 
 def _triangulate_tracks(tr: Tracks, norm, kps, poses, camera, settings, roi):

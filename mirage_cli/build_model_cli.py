@@ -47,7 +47,30 @@ def summary_lines(model: LandmarkModel) -> list[str]:
         f"RMS {s['rms_reprojection_px']:.3f} px",
         f"azimuth coverage   {s['azimuth_coverage_deg']:.0f} deg within {REACH_DEG:g} deg of a "
         f"keyframe (largest gap {s['largest_gap_deg']:.0f} deg)",
+        *_kept_lines(model),
+        *_roi_lines(model),
     ]
+
+
+def _kept_lines(model: LandmarkModel) -> list[str]:
+    """How many keyframes were kept for their azimuth and how many for their view change."""
+    kept = model.meta.get("kept") or {}
+    if not kept:
+        return []
+    by_change = sum(str(v).startswith("view change") for v in kept.values())
+    return [
+        f"kept because       {len(kept) - by_change} azimuth bin(s), {by_change} view "
+        "change(s) (a camera moving sideways or forward)"
+    ]
+
+
+def _roi_lines(model: LandmarkModel) -> list[str]:
+    roi = model.meta.get("roi")
+    if not roi:
+        return []
+    vals = ", ".join(f"{float(v):.3g}" for v in roi.get("values") or [])
+    why = f" ({roi['reason']})" if roi.get("reason") else ""
+    return [f"volume of interest {roi.get('kind')}" + (f" [{vals}] m" if vals else "") + why]
 
 
 class _Stages:
@@ -238,10 +261,10 @@ def inspect_cmd(model_path, plot, rerun_path):
     ui.echo(f"  camera             {c.width}x{c.height}, fx {c.fx:.1f} px")
     for line in summary_lines(model):
         ui.echo("  " + line)
-    roi = model.meta.get("roi")
-    if roi:
-        vals = ", ".join(f"{float(v):.3g}" for v in roi.get("values") or [])
-        ui.echo(f"  volume of interest {roi.get('kind')} [{vals}] m")
+    kept = model.meta.get("kept") or {}
+    for kf in model.keyframes:
+        why = kept.get(kf.name, "")
+        ui.echo(f"    {kf.name:<20} {kf.n_linked:5d} points" + (f"  kept: {why}" if why else ""))
     gap = coverage_warning(model)
     if gap:
         ui.log.warning(gap)

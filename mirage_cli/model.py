@@ -147,7 +147,12 @@ class LandmarkModel:
 
         Each query votes for the keyframe of its nearest linked descriptor when it passes
         the ratio test, or when its two nearest neighbours are the same 3D point (seen by
-        neighbouring keyframes, which would otherwise fail the ratio test). Score = votes.
+        neighbouring keyframes, which would otherwise fail the ratio test). Votes by chance
+        go to each keyframe in proportion to its linked descriptors, so the score is how
+        far its votes stand above that share, in standard deviations (a keyframe with many
+        points collects many chance votes: on real photographs they outnumbered the true
+        keyframe's; counted by votes alone, dtu_scan37's frame 29 was sent to three
+        keyframes that see none of its points).
         """
         if len(descriptors) == 0 or not self.keyframes:
             return []
@@ -162,8 +167,11 @@ class LandmarkModel:
         same = ok & (i2 >= 0) & (pids[np.clip(i2, 0, None)] == pids[np.clip(i1, 0, None)])
         good = ok & ((k[:, 1] < 0.8 * k[:, 3]) | same)
         votes = np.bincount(owner[i1[good]], minlength=len(self.keyframes)).astype(float)
-        order = np.argsort(-votes, kind="stable")[:top_k]
-        return [(int(i), float(votes[i])) for i in order if votes[i] > 0]
+        share = np.bincount(owner, minlength=len(self.keyframes)) / max(len(owner), 1)
+        chance = votes.sum() * share
+        score = (votes - chance) / np.sqrt(chance + 1.0)
+        order = np.argsort(-score, kind="stable")[:top_k]
+        return [(int(i), float(score[i])) for i in order if votes[i] > 0]
 
     def nearest_keyframes(self, pose: Pose, k: int = 3) -> list[int]:
         """Keyframes whose viewpoint is closest: direction from the landmark to the camera

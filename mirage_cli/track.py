@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from .camera import Camera
+from .evidence import chance_inlier_probability, is_evidence, search_area
 from .features import detect, guided_match, make_detector, to_gray
 from .frames import Frame
 from .model import LandmarkModel, ground_points, point_twins
@@ -42,7 +43,9 @@ from .solver import (
     solve_pose,
 )
 from .solver import warm_up as _warm_up_solver
-from .trajectory import FrameRecord, Measurement, Status
+from .trajectory import FrameRecord, Measurement, Reason, Status
+
+RANSAC_HYPOTHESES = RansacOptions.iterations  # how many poses RANSAC tries at most
 
 
 @dataclass
@@ -54,7 +57,8 @@ class TrackSettings:
     min_inliers: int = 15  # fewer consistent points without a prediction: lost
     min_track_inliers: int = 6  # while tracking (a prediction to match around and start
     # Mirage-S from) the pose's uncertainty decides, so a few well-spread points suffice
-    min_inlier_ratio: float = 0.5  # of the matches, at detection
+    max_false_alarms: float = 1e-3  # the inliers must rule out chance: at most this many
+    # of RANSAC's hypotheses would gather as much support from wrong matches (evidence.py)
     min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
     max_rmse_px: float = 2.0
     ransac_px: float = 3.0
@@ -159,6 +163,48 @@ def unambiguous_pose(
     full[np.flatnonzero(inl)[final.inliers]] = True
     final.inliers = full
     return final
+
+
+def frame_covariances(
+    est: PoseEstimate,
+    n: int,
+    camera: Camera,
+    points=None,
+    huber_px: float = 0.5,
+    model_rms_px: float = 0.0,
+    model_error_points: float = 300.0,
+    model_error_scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """6x6 covariances (the solver's parametrisation) of a pose: what its residuals show,
+    and the model's own error (shared with every frame that sees the same points); the
+    pose's is their sum.
+
+    What the residuals show comes from the leverage-corrected sandwich covariance of the
+    inliers (`points`: X, uv and est.inliers; see `solver.sandwich_covariance`), so a pose
+    carried by a few bad or isolated points is as uncertain as it is; without points, the
+    solver's (J^T J)^-1 s_res^2. Errors of the model points and of keypoint localisation
+    on a face seen at an angle are shared by neighbouring points and do not average out
+    over n, so they count as the model's reprojection RMS over `model_error_points`
+    independent points: (J^T J)^-1 s_model^2 n / n_model. `model_error_scale` is what the
+    model's leave-one-keyframe-out check measured (model_check.py): how much larger a
+    pose's error is than these two predict, with the model's points and poses as they
+    are (keyframe pose errors, calibration, real pixels); the excess is added to the
+    shared part, which the smoother does not average away.
+    """
+    s2 = est.sigma_px**2
+    res = est.covariance
+    if not s2 > 0:
+        return res, np.zeros((6, 6))
+    if points is not None:
+        X, uv = points
+        inl = est.inliers
+        sw = sandwich_covariance(X[inl], uv[inl], est.pose, camera, huber_px)
+        if np.all(np.isfinite(sw)):
+            res = sw
+    shared = est.covariance * (model_rms_px**2 * n / (model_error_points * s2))
+    if model_error_scale > 1.0:
+        shared = shared + (model_error_scale**2 - 1.0) * (res + shared)
+    return res, shared
 
 
 def warm_up() -> None:
@@ -284,6 +330,7 @@ class Tracker:
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
+        self.model_error_scale = float(model.meta.get("check", {}).get("error_scale", 1.0))
 
     @property
     def lookahead(self) -> int:
@@ -572,14 +619,14 @@ class Tracker:
                     return res
         search = self._search(self.lost_run)
         if search is None:
-            return FrameRecord(Status.LOST, mode="relocalise")
+            return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_SEARCHED)
         if search == "probe":
             probe = self._probe(gray)
             if probe.status == Status.LOST:
                 return probe
         kps, desc = self._features("full", detect, gray)
         if desc is None or len(kps) < self.s.min_inliers:
-            return FrameRecord(Status.LOST, mode="detect")
+            return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_FEATURES)
         if pred is not None and box is None:
             res = self._guided(kps, desc, pred)
             if res.ok or res.status == Status.UNCERTAIN:  # as above
@@ -589,7 +636,7 @@ class Tracker:
     def _probe(self, gray: np.ndarray) -> FrameRecord:
         kps, desc = self._features("probe", self._probe_features, gray)
         if desc is None or len(kps) < self.s.min_inliers:
-            return FrameRecord(Status.LOST, mode="relocalise")
+            return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.FEW_FEATURES)
         return self._relocalise(kps, desc)
 
     def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int, float] | None:
@@ -622,17 +669,37 @@ class Tracker:
         return int(x0), int(y0), int(x1), int(y1), shrink
 
     def _guided(self, kps, desc, pred: Pose) -> FrameRecord:
-        """Tracking: match near the predicted projections of the nearby keyframes' points."""
+        """Tracking: match near the predicted projections of the nearby keyframes' points.
+        When under half of the matches agree (the prediction was off: stills taken apart,
+        a sudden turn), the matches near the prediction miss many of the frame's points
+        and hold wrong ones: match again around the pose just found (and its nearest
+        keyframes) within a quarter of the radius, and solve again from it."""
+        radius = self.s.guided_radius_px * (1 + min(self.lost_run, 3))
+        first = self._guided_solve(kps, desc, pred, radius)
+        if first is None:
+            return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_MATCHES)
+        est, uv, X, kf, land = first
+        if est.success and est.inliers.sum() < 0.5 * len(uv):
+            again = self._guided_solve(kps, desc, est.pose, radius / 4)
+            if again is not None and again[0].success:
+                if again[0].inliers.sum() > est.inliers.sum():
+                    est, uv, X, kf, land = again
+                    radius /= 4
+        res = self._gate(est, len(uv), "detect", True, land, (X, uv), radius_px=radius)
+        return self._accept(res, est, uv, X, kf, land)
+
+    def _guided_solve(self, kps, desc, pred: Pose, radius: float):
+        """Guided matches within `radius` of where `pred` projects the nearby keyframes'
+        points, and the pose from them (None: too few matches)."""
         cands = list(self.model.nearest_keyframes(pred, self.s.local_keyframes))
         X_all, d_all, kf_of, pid_all = self._candidates(cands)
         Xc = pred.transform(X_all)
         front = Xc[:, 2] > 1e-3
         uvp = self.camera.project(X_all[front], pred)
-        radius = self.s.guided_radius_px * (1 + min(self.lost_run, 3))
         qi, ci = guided_match(kps, desc, uvp, d_all[front], pid_all[front], radius, self.s.ratio)
         ci = np.flatnonzero(front)[ci]
         if len(qi) < self.s.min_track_inliers:
-            return FrameRecord(Status.LOST, matches=len(qi), mode="detect")
+            return None
         uv, X = kps[qi].astype(np.float64), X_all[ci]
         kf = int(np.argmax(np.bincount(kf_of[ci], minlength=len(self.model.keyframes))))
         est = solve_pose(
@@ -644,15 +711,13 @@ class Tracker:
             ransac=RansacOptions(threshold_px=self.s.ransac_px, seed=self.s.seed),
             refine=RefineOptions(reject_px=self.s.reject_px, huber_px=self.s.huber_px),
         )
-        land = self.on_landmark[pid_all[ci]]
-        res = self._gate(est, len(uv), "detect", True, land, (X, uv))
-        return self._accept(res, est, uv, X, kf, land)
+        return est, uv, X, kf, self.on_landmark[pid_all[ci]]
 
     def _relocalise(self, kps, desc) -> FrameRecord:
         """Lost: recognise, match, and accept a pose only when the evidence is unambiguous."""
         cands = [i for i, _ in self.model.recognize(desc, top_k=self.s.global_keyframes)]
         if not cands:
-            return FrameRecord(Status.LOST, mode="relocalise")
+            return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_RECOGNISED)
         X_all, d_all, kf_of, pid_all = self._candidates(cands)
         # descriptor matching whose ratio test compares distinct 3D points (the same point
         # seen by two candidate keyframes is not a rival); no position prior: radius inf
@@ -662,13 +727,16 @@ class Tracker:
         # matches to repeated texture or to the ground do not vote
         land = self.on_landmark[pid_all[ti]]
         unique = self.votes[pid_all[ti]]
-        lost = FrameRecord(Status.LOST, matches=len(qi), mode="relocalise")
+        lost = FrameRecord(
+            Status.LOST, matches=len(qi), mode="relocalise", reason=Reason.FEW_MATCHES
+        )
         if unique.sum() < self.s.min_inliers:
             return lost
         kf = int(np.argmax(np.bincount(kf_of[ti[unique]], minlength=len(self.model.keyframes))))
         est = unambiguous_pose(X, uv, unique, self.camera, self.model.keyframes[kf].pose, self.s)
         if isinstance(est, Status):
             lost.status = est
+            lost.reason = Reason.AMBIGUOUS if est == Status.AMBIGUOUS else Reason.FEW_INLIERS
             return lost
         res = self._gate(est, len(uv), "relocalise", False, land, (X, uv), unique)
         return self._accept(res, est, uv, X, kf, land)
@@ -698,29 +766,29 @@ class Tracker:
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
 
     def _covariances(self, est: PoseEstimate, n: int, points=None):
-        """6x6 covariances (the solver's parametrisation) of the pose: what this frame's
-        residuals show, and the model's own error (shared with every frame that sees the
-        same points); the pose's is their sum.
+        return frame_covariances(
+            est, n, self.camera, points, self.s.huber_px, self.model_rms_px,
+            self.s.model_error_points, self.model_error_scale,
+        )  # fmt: skip
 
-        What the residuals show comes from the leverage-corrected sandwich covariance of
-        the inliers (`points`: X, uv and est.inliers; see `solver.sandwich_covariance`), so
-        a pose carried by a few bad or isolated points is as uncertain as it is; without
-        points, the solver's (J^T J)^-1 s_res^2. Errors of the model points and of keypoint
-        localisation on a face seen at an angle are shared by neighbouring points and do
-        not average out over n, so they count as the model's reprojection RMS over
-        `model_error_points` independent points: (J^T J)^-1 s_model^2 n / n_model.
-        """
-        s2 = est.sigma_px**2
-        res = est.covariance
-        if not s2 > 0:
-            return res, np.zeros((6, 6))
-        if points is not None:
-            X, uv = points
-            inl = est.inliers
-            sw = sandwich_covariance(X[inl], uv[inl], est.pose, self.camera, self.s.huber_px)
-            if np.all(np.isfinite(sw)):
-                res = sw
-        return res, est.covariance * (self.model_rms_px**2 * n / (self.s.model_error_points * s2))
+    def _significant(
+        self, est: PoseEstimate, n: int, mode: str, points, voting, radius_px=None
+    ) -> bool:
+        """Could the inliers be chance (evidence.py)? Wrong matches fall anywhere within the
+        guided radius of their predicted pixel while tracking (flowed points as well: the
+        flow searches no further), anywhere in the matched keypoints' box when
+        relocalising. Only the matches that could decide the pose count (`voting`:
+        matches to repeated texture or the ground are expected to pick the wrong twin)."""
+        inl = est.inliers if voting is None else est.inliers & voting
+        total = n if voting is None else int(voting.sum())
+        if mode == "relocalise" and points is not None:
+            uv = points[1] if voting is None else points[1][voting]
+            area = search_area(uv)
+        else:
+            r = radius_px or self.s.guided_radius_px * (1 + min(self.lost_run, 3))
+            area = np.pi * r**2
+        p = chance_inlier_probability(self.s.ransac_px, area)
+        return is_evidence(total, int(inl.sum()), p, RANSAC_HYPOTHESES, self.s.max_false_alarms)
 
     def _gate(
         self,
@@ -731,6 +799,7 @@ class Tracker:
         on_landmark: np.ndarray | None = None,
         points: tuple[np.ndarray, np.ndarray] | None = None,
         voting: np.ndarray | None = None,
+        radius_px: float | None = None,
     ) -> FrameRecord:
         """ok only with enough consistent inliers, enough of them on the landmark itself
         (`on_landmark`, per match; None: all are), a small residual, a plausible motion and
@@ -747,6 +816,7 @@ class Tracker:
             iterations=est.iterations,
             rmse_px=est.rmse_px,
             mode=mode,
+            reason=Reason.FEW_INLIERS,
         )
         if not est.success:
             return res
@@ -755,18 +825,20 @@ class Tracker:
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique
         need = self.s.min_inliers if mode == "relocalise" else self.s.min_track_inliers
-        if voting is None:
-            ratio_ok = ninl >= self.s.min_inlier_ratio * n
-        else:
-            ratio_ok = (est.inliers & voting).sum() >= self.s.min_inlier_ratio * voting.sum()
-        if ninl < need or not ratio_ok:
+        if ninl < need:
+            return res
+        if not self._significant(est, n, mode, points, voting, radius_px):
+            res.reason = Reason.CHANCE
             return res
         n_land = ninl if on_landmark is None else int((est.inliers & on_landmark).sum())
         if n_land < min(self.s.min_landmark_inliers, need):
+            res.reason = Reason.OFF_LANDMARK
             return res  # the ground (or background) alone: the landmark is not in view
         if not est.rmse_px <= self.s.max_rmse_px:
+            res.reason = Reason.RESIDUAL
             return res
         if est.pose.transform(np.zeros((1, 3)))[0, 2] <= 0:
+            res.reason = Reason.BEHIND
             return res  # the landmark behind the camera
         frames = 1 + self.lost_run  # since the previous ok pose: the limits are per frame
         if (
@@ -777,6 +849,7 @@ class Tracker:
                 or est.pose.angle_to(self.prev_pose) > self.s.max_jump_deg * frames
             )
         ):
+            res.reason = Reason.JUMP
             return res
         max_pos = self.s.max_sigma_pos_m
         if points is not None:  # relative to the range: the inliers' median depth
@@ -787,10 +860,10 @@ class Tracker:
             max_sigma_rot_deg=self.s.max_sigma_rot_deg,
         )  # fmt: skip
         if not (res.sigma_pos_m <= max_pos and res.sigma_rot_deg <= self.s.max_sigma_rot_deg):
-            res.status = Status.UNCERTAIN
+            res.status, res.reason = Status.UNCERTAIN, Reason.UNCERTAIN
             self._uncertain_pose = est.pose
             return res
-        res.status, res.pose = Status.OK, est.pose
+        res.status, res.pose, res.reason = Status.OK, est.pose, ""
         if mode == "flow" and self.keyframe >= 0:
             res.keyframe = self.model.keyframes[self.keyframe].name
         return res

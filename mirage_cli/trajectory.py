@@ -53,6 +53,28 @@ class Status(str, Enum):
     __format__ = str.__format__
 
 
+class Reason(str, Enum):
+    """Why a frame is not `ok` (the pose CSV's `reason` column; empty when ok)."""
+
+    FEW_FEATURES = "few_features"  # too few keypoints in the frame (blank, dark, blurred)
+    NOT_SEARCHED = "not_searched"  # long lost: this frame was skipped between searches
+    NOT_RECOGNISED = "not_recognised"  # no keyframe shares its features
+    FEW_MATCHES = "few_matches"  # too few matches to the model's points
+    FEW_INLIERS = "few_inliers"  # too few matches agree on one pose
+    CHANCE = "chance"  # the agreeing matches could be chance (evidence.py)
+    AMBIGUOUS = "ambiguous"  # two distinct poses explain the matches alike
+    OFF_LANDMARK = "off_landmark"  # the pose rests on the ground or background alone
+    RESIDUAL = "residual"  # the reprojection RMS is above --max-rmse
+    BEHIND = "behind"  # the landmark would be behind the camera
+    JUMP = "jump"  # the pose jumped further from the last one than the motion allows
+    UNCERTAIN = "uncertain"  # its 1-sigma uncertainty is above the limits
+
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
+
+
 @dataclass
 class Measurement:
     """What the tracker measured in a frame with a pose (ok or uncertain), for the smoother:
@@ -86,6 +108,7 @@ class FrameRecord:
     sigma_rot_deg: float = float("nan")
     ms: float = float("nan")  # processing time of the frame
     mode: str = ""  # detect | flow | relocalise
+    reason: str = ""  # why not ok (a Reason); empty when ok
     inlier_px: np.ndarray | None = field(default=None, repr=False)  # for overlays
     image: np.ndarray | None = field(default=None, repr=False)  # the frame, when kept
     extra: dict = field(default_factory=dict)  # other columns by name (landmark_visible)
@@ -103,7 +126,7 @@ POSE_COLUMNS = [
 REQUIRED_INPUT = ["x_m", "y_m", "z_m", "qw", "qx", "qy", "qz"]
 # diagnostic columns of `mirage track`'s pose CSV, after the pose
 TRACK_COLUMNS = ["keyframe", "matches", "inliers", "reproj_rmse_px", "iterations",
-                 "sigma_pos_m", "sigma_rot_deg", "ms", "mode"]  # fmt: skip
+                 "sigma_pos_m", "sigma_rot_deg", "ms", "mode", "reason"]  # fmt: skip
 _ATTR = {"reproj_rmse_px": "rmse_px"}
 
 

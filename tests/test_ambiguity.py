@@ -188,21 +188,25 @@ def test_ground_alone_is_not_ok(model):
     assert tr._gate(est, 40, "detect", False, ~ground).status == "ok"
 
 
-def test_the_inlier_ratio_counts_the_matches_that_vote(model):
+def test_the_evidence_counts_the_matches_that_vote(model):
     """Relocalising with a tiled floor in view, most matches go to repeated texture and
-    pick the wrong twin; the inlier ratio counts among the matches that could decide the
-    pose (unique ones), so a clear majority of those is ok, a minority is not."""
+    pick the wrong twin; only the matches that could decide the pose (unique ones) count
+    as evidence: 40 agreeing of 45 unique ones is ok; when the agreeing matches are all
+    twins, 40 of them among 60 unique ones that disagree are no evidence at all."""
     tr = Tracker(model, model.camera, TrackSettings())
     pose = look_at([1.5, 0.0, 0.6], [0, 0, 0.3])
+    rng = np.random.default_rng(3)
+    uv = rng.uniform([0, 0], [640, 480], (100, 2))
+    X = np.zeros((100, 3))
     inl = np.zeros(100, bool)
-    inl[:40] = True  # 40 of 100 matches agree: under half of them all
+    inl[:40] = True
     est = PoseEstimate(pose, True, "", 5, 0.5, inl, np.eye(6) * 1e-8, sigma_px=0.5)
-    assert tr._gate(est, 100, "relocalise", False).status == "lost"
     voting = np.zeros(100, bool)
-    voting[:45] = True  # ...but 40 of the 45 unique ones: the other 55 are twins
-    assert tr._gate(est, 100, "relocalise", False, voting=voting).status == "ok"
-    voting[:90] = True  # 40 of 90 unique ones: the unique evidence disagrees
-    assert tr._gate(est, 100, "relocalise", False, voting=voting).status == "lost"
+    voting[:45] = True  # 40 of the 45 unique ones agree: the other 55 are twins
+    res = tr._gate(est, 100, "relocalise", False, voting=voting)
+    assert res.status == "ok" and res.reason == ""
+    res = tr._gate(est, 100, "relocalise", False, points=(X, uv), voting=~voting)
+    assert res.status == "lost" and res.reason == "chance", res.reason
 
 
 def _track_gate(tr, X, uv, mode, reference):
