@@ -118,7 +118,59 @@ class BuildSettings:
     epipolar_px: float = 2.0
     neighbours: int = 2  # match each keyframe with this many keyframes on each side
     roi: ROI = field(default_factory=lambda: ROI("auto"))
+    up: str = "auto"  # W's up axis: auto (from the views) | +z | -z | +y | -y | +x | -x
     max_video_frames: int = 400  # frames examined in a video (evenly spaced)
+
+
+UP_AXES = ("auto", "+z", "-z", "+y", "-y", "+x", "-x")
+
+
+def level_matrix(axis: str) -> np.ndarray:
+    """The rotation L taking W to its levelled copy (X' = L X), whose Z is `axis` of W
+    ('+z', '-y', ...): a signed permutation, so levelling changes no digit."""
+    sign = -1.0 if axis[0] == "-" else 1.0
+    k = "xyz".index(axis[1])
+    z = np.zeros(3)
+    z[k] = sign
+    x = np.eye(3)[1 if k == 0 else 0]
+    return np.stack([x, np.cross(z, x), z])
+
+
+def find_up(poses: list[Pose], option: str = "auto") -> tuple[str, str]:
+    """(axis, how it was found). 'auto': the world axis nearest the views' mean camera up
+    direction (-y of the camera in W) when within 45 deg of it, else +z (the brief's
+    convention): a ring of views, a robot arm's or a hand-held camera stay roughly upright,
+    so their mean up is the world's, in whatever frame their poses were given."""
+    if option != "auto":
+        return option, "set by --up"
+    ups = np.array([-p.R[1] for p in poses])  # camera -y axis in W (R's rows: camera axes)
+    m = ups.mean(axis=0)
+    if np.linalg.norm(m) < 1e-9:
+        return "+z", "the views' up directions cancel: +z assumed"
+    m /= np.linalg.norm(m)
+    k = int(np.argmax(np.abs(m)))
+    if abs(m[k]) < np.cos(np.radians(45.0)):
+        return "+z", "no world axis within 45 deg of the views' mean up: +z assumed"
+    axis = ("+" if m[k] > 0 else "-") + "xyz"[k]
+    return axis, f"the views' mean camera up is {np.degrees(np.arccos(abs(m[k]))):.0f} deg from it"
+
+
+class ViewList(list):
+    """The selected views (their poses levelled) and how W was levelled (`up`)."""
+
+    up: dict = {"axis": "+z", "how": "", "world_from_model": np.eye(3).tolist()}
+
+
+def _level(views: list, option: str) -> ViewList:
+    """The views with their poses in W's levelled copy (Z = the up axis)."""
+    axis, how = find_up([v.pose for v in views], option)
+    L = level_matrix(axis)
+    out = ViewList(views)
+    if axis != "+z":
+        for v in out:
+            v.pose = Pose(v.pose.R @ L.T, v.pose.t)
+    out.up = {"axis": axis, "how": how, "world_from_model": L.T.tolist()}
+    return out
 
 
 @dataclass
@@ -257,11 +309,13 @@ def select_keyframes(
     return keep
 
 
-def _select(views: list, settings) -> list:
-    """The keyframe views, each with why it was kept."""
+def _select(views: list, settings) -> ViewList:
+    """The keyframe views, levelled (Z up), each with why it was kept."""
+    views = _level(views, settings.up)
     reasons: dict[int, str] = {}
     idx = select_keyframes([v.pose for v in views], settings.spacing_deg, reasons=reasons)
-    out = [views[i] for i in idx]
+    out = ViewList(views[i] for i in idx)
+    out.up = views.up
     for i, v in zip(idx, out, strict=True):
         v.reason = reasons.get(i, "")
     return out
@@ -274,8 +328,9 @@ def views_from_inputs(
     poses_csv=None,
     board: Board | None = None,
     progress: Callable[[int, int], None] | None = None,
-) -> list[View]:
-    """Resolve INPUT into the selected keyframe views (images loaded, sizes checked)."""
+) -> ViewList:
+    """Resolve INPUT into the selected keyframe views (images loaded, sizes checked), their
+    poses in W's levelled copy (`ViewList.up`: Z is the up axis found or set)."""
     if (poses_csv is None) == (board is None):
         raise InputError("give exactly one of --poses (pose CSV) or --board (board YAML)")
     media = resolve_inputs(inputs, "images of the landmark")
@@ -343,7 +398,7 @@ def _need_two(views: list, what: str) -> None:
         )
 
 
-def _views_from_video(video, camera, settings, poses_csv, board, progress) -> list[View]:
+def _views_from_video(video, camera, settings, poses_csv, board, progress) -> ViewList:
     src = FrameSource([video])
     if src.size != camera.size:
         _check_size(np.zeros(src.size[::-1], np.uint8), camera, f"video {video.name}")
@@ -359,13 +414,10 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
             raise InputError(
                 f"pose file {poses_csv} has no rows with frame numbers for video {video.name}"
             )
-        idx = sorted(frames)
-        why: dict[int, str] = {}
-        chosen = select_keyframes([frames[i] for i in idx], settings.spacing_deg, reasons=why)
-        sel = [idx[i] for i in chosen]
-        reason = {idx[i]: why.get(i, "") for i in chosen}
-        _need_two(sel, "video frames with a pose")
-        wanted = set(sel)
+        chosen = _select([View(f"frame_{i:06d}", frames[i]) for i in sorted(frames)], settings)
+        by_frame = {int(v.name[6:]): v for v in chosen}
+        _need_two(chosen, "video frames with a pose")
+        wanted = set(by_frame)
         got: dict[int, np.ndarray] = {}
         for i, _, _, frame in src.frames(end=max(wanted) + 1, gray=True):
             if i in wanted and frame is not None:
@@ -377,9 +429,10 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> li
         lost = sorted(wanted - set(got))
         if lost:
             log.warning(f"frames {lost[:5]} of {video.name} could not be read; skipped")
-        views = [
-            View(f"frame_{i:06d}", frames[i], None, got[i], reason[i]) for i in sel if i in got
-        ]
+        views = ViewList(v for i, v in by_frame.items() if i in got)
+        views.up = chosen.up
+        for v in views:
+            v.image = got[int(v.name[6:])]
         _need_two(views, "readable video frames with a pose")
         return views
     poser = BoardPoser(board, camera)
@@ -582,6 +635,7 @@ def build_model(
         "roi": {"kind": roi.kind, "values": list(roi.values), "reason": roi.reason},
         "kept": {v.name: v.reason for v in views if v.reason},
         "check": model_check.summary(check, [v.name for v in views]),
+        "up": getattr(views, "up", ViewList.up),
         "max_reproj_px": settings.max_reproj_px,
         "min_angle_deg": settings.min_angle_deg,
         "ratio": settings.ratio,

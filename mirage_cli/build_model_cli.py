@@ -10,6 +10,7 @@ from . import ui
 from .boards import load_board
 from .build_model import (
     ROI,
+    UP_AXES,
     BuildSettings,
     build_model,
     coverage_warning,
@@ -49,6 +50,7 @@ def summary_lines(model: LandmarkModel) -> list[str]:
         f"keyframe (largest gap {s['largest_gap_deg']:.0f} deg)",
         *_kept_lines(model),
         *_roi_lines(model),
+        *_up_lines(model),
     ]
 
 
@@ -62,6 +64,14 @@ def _kept_lines(model: LandmarkModel) -> list[str]:
         f"kept because       {len(kept) - by_change} azimuth bin(s), {by_change} view "
         "change(s) (a camera moving sideways or forward)"
     ]
+
+
+def _up_lines(model: LandmarkModel) -> list[str]:
+    up = model.meta.get("up")
+    if not up:
+        return []
+    how = f" ({up['how']})" if up.get("how") else ""
+    return [f"up axis            {up.get('axis')} of the pose file's frame" + how]
 
 
 def _roi_lines(model: LandmarkModel) -> list[str]:
@@ -122,6 +132,13 @@ class _Stages:
     "XMIN,XMAX,YMIN,YMAX,ZMIN,ZMAX (box), metres.",
 )
 @shown(
+    "--up",
+    type=click.Choice(UP_AXES),
+    default=BuildSettings.up,
+    help="The world frame's up axis (the pose file's or board's W): auto finds it from the "
+    "views' camera up direction. The model is kept levelled; poses are written in W.",
+)
+@shown(
     "--max-reproj-px",
     type=FiniteFloat(min=0.1),
     default=BuildSettings.max_reproj_px,
@@ -144,6 +161,7 @@ def build_model_cmd(
     detector,
     nfeatures,
     roi,
+    up,
     max_reproj_px,
     min_angle_deg,
 ):
@@ -174,6 +192,7 @@ def build_model_cmd(
         max_reproj_px=max_reproj_px,
         min_angle_deg=min_angle_deg,
         roi=ROI.parse(roi),
+        up=up,
     )
     stages = _Stages()
     try:

@@ -88,6 +88,14 @@ class LandmarkModel:
                 errs.append(np.linalg.norm(uv - kp, axis=1))
         return np.concatenate(errs) if errs else np.zeros(0)
 
+    @property
+    def world_from_model(self) -> np.ndarray:
+        """3x3 rotation from the model's frame to the user's W (X_w = M X_model). The model
+        is kept in a levelled copy of W whose Z is the up axis found at build time
+        (`meta['up']`; identity for +Z and for models made before it was recorded)."""
+        up = self.meta.get("up") or {}
+        return np.array(up.get("world_from_model", np.eye(3)), float).reshape(3, 3)
+
     def azimuths(self) -> np.ndarray:
         return np.array([kf.pose.azimuth_deg for kf in self.keyframes])
 
@@ -148,8 +156,9 @@ class LandmarkModel:
         Each query votes for the keyframe of its nearest linked descriptor when it passes
         the ratio test, or when its two nearest neighbours are the same 3D point (seen by
         neighbouring keyframes, which would otherwise fail the ratio test). Votes by chance
-        go to each keyframe in proportion to its linked descriptors, so the score is how
-        far its votes stand above that share, in standard deviations (a keyframe with many
+        go to each keyframe in proportion to its linked descriptors: the keyframes with more
+        votes than that share explains (by two standard deviations) come first, each group
+        by votes (a keyframe with many
         points collects many chance votes: on real photographs they outnumbered the true
         keyframe's; counted by votes alone, dtu_scan37's frame 29 was sent to three
         keyframes that see none of its points).
@@ -169,9 +178,10 @@ class LandmarkModel:
         votes = np.bincount(owner[i1[good]], minlength=len(self.keyframes)).astype(float)
         share = np.bincount(owner, minlength=len(self.keyframes)) / max(len(owner), 1)
         chance = votes.sum() * share
-        score = (votes - chance) / np.sqrt(chance + 1.0)
-        order = np.argsort(-score, kind="stable")[:top_k]
-        return [(int(i), float(score[i])) for i in order if votes[i] > 0]
+        beyond = votes > chance + 2.0 * np.sqrt(chance)  # more votes than chance explains
+        order = np.argsort(-votes, kind="stable")
+        order = np.concatenate([order[beyond[order]], order[~beyond[order]]])[:top_k]
+        return [(int(i), float(votes[i])) for i in order if votes[i] > 0]
 
     def nearest_keyframes(self, pose: Pose, k: int = 3) -> list[int]:
         """Keyframes whose viewpoint is closest: direction from the landmark to the camera

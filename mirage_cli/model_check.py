@@ -26,7 +26,8 @@ from .solver import RefineOptions, sigmas, solve_pose
 
 MIN_POINTS = 15  # fewer points seen by the other keyframes: that keyframe is not checked
 CHI2_3_MEDIAN_OVER_3 = 0.7887  # median of chi-square(3) / 3: e^2 / sigma^2 of a 3-vector
-SUSPECT = 5.0  # a keyframe this many sigmas off is named
+SUSPECT = 4.0  # a keyframe this many sigmas off is named (ratio^2 ~ chi2(6)/6 when the
+# model is right: P(ratio > 4) < 1e-15; the sample's 36 reach 1.5, one 1 cm off 4.6)
 
 
 @dataclass

@@ -869,6 +869,16 @@ class Tracker:
         return res
 
 
+def _to_world(rec: FrameRecord, level: np.ndarray) -> None:
+    """A record's poses from the model's levelled frame (X' = level X) to W. The
+    covariances are of a perturbation in the camera frame: the same in either."""
+    if rec.pose is not None:
+        rec.pose = Pose(rec.pose.R @ level, rec.pose.t)
+    m = rec.measurement
+    if m is not None:
+        m.pose = Pose(m.pose.R @ level, m.pose.t)
+
+
 def run(
     frames: Iterable[Frame], tracker: Tracker, keep_images: bool = False
 ) -> Iterator[FrameRecord]:
@@ -884,6 +894,9 @@ def run(
     k = tracker.lookahead
     size = tracker.camera.size
     queue: deque = deque()  # (frame, gray or None), the current one first
+    # the model (and the tracker) work in W's levelled copy; records leave in W
+    level = tracker.model.world_from_model.T
+    to_world = None if np.array_equal(level, np.eye(3)) else level
 
     def step() -> FrameRecord:
         f, gray = queue.popleft()
@@ -896,6 +909,8 @@ def run(
             with through_compiled_code():
                 rec = tracker.process(gray, [g for _, g in queue])
         rec.frame, rec.time_s = f.id, f.time_s
+        if to_world is not None:
+            _to_world(rec, to_world)
         rec.ms = round((time.perf_counter() - t0) * 1000, 2)
         if keep_images:
             rec.image = f.image
