@@ -21,7 +21,6 @@ matched keypoints' bounding box when relocalising). A pose is evidence when NFA 
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import binom
 
 MINIMAL_SAMPLE = 3
 
@@ -43,15 +42,30 @@ def search_area(uv: np.ndarray, min_side_px: float = 64.0) -> float:
     return float(side[0] * side[1])
 
 
+def log_binomial_tail(n: int, m: int, p: float) -> float:
+    """Natural log of P(Binomial(n, p) >= m), summed in the log domain (no underflow; numpy
+    only: scipy.stats costs 40 MB and half a second to import in every `mirage track`)."""
+    if m <= 0:
+        return 0.0
+    if m > n or p <= 0.0:
+        return -np.inf
+    if p >= 1.0:
+        return 0.0
+    j = np.arange(m, n + 1)
+    k = np.arange(1, n + 1)
+    log_c = np.concatenate([[0.0], np.cumsum(np.log(n - k + 1) - np.log(k))])  # log C(n, k)
+    terms = log_c[j] + j * np.log(p) + (n - j) * np.log1p(-p)
+    top = terms.max()
+    return float(top + np.log(np.exp(terms - top).sum()))
+
+
 def log10_false_alarms(n: int, k: int, p: float, hypotheses: int) -> float:
     """log10 of the expected number of hypotheses with `k` or more of `n` matches agreeing
     by chance (each agreeing with probability `p`)."""
     s = MINIMAL_SAMPLE
-    if k <= s:
+    if k <= s or p >= 1.0:
         return float(np.log10(max(hypotheses, 1)))
-    if p >= 1.0:
-        return float(np.log10(max(hypotheses, 1)))
-    tail = binom.logsf(k - s - 1, max(n - s, 0), p)  # P(X >= k - s), natural log
+    tail = log_binomial_tail(max(n - s, 0), k - s, p)  # P(X >= k - s), natural log
     return float(np.log10(max(hypotheses, 1)) + tail / np.log(10))
 
 

@@ -179,6 +179,17 @@ def test_the_chance_of_support_is_a_binomial_tail():
     assert not is_evidence(400, 6, p, 500, 1e-3)
 
 
+@pytest.mark.parametrize(
+    "n,m,p", [(100, 10, 0.0056), (97, 3, 0.0056), (2000, 13, 0.004), (49, 20, 1.8e-4),
+              (10, 5, 0.5), (300, 150, 0.3), (5, 6, 0.5), (5, 0, 0.5)])  # fmt: skip
+def test_the_binomial_tail_is_scipys(n, m, p):
+    from scipy.stats import binom
+
+    from mirage_cli.evidence import log_binomial_tail
+
+    assert log_binomial_tail(n, m, p) == pytest.approx(binom.logsf(m - 1, n, p), rel=1e-9)
+
+
 def test_random_matches_never_make_a_pose():
     """What the evidence test protects against: matches that are all wrong (keypoints
     anywhere in the frame paired with random model points). RANSAC finds some pose that a
