@@ -51,6 +51,7 @@ def summary_lines(model: LandmarkModel) -> list[str]:
         *_kept_lines(model),
         *_roi_lines(model),
         *_up_lines(model),
+        *_check_lines(model),
     ]
 
 
@@ -63,6 +64,17 @@ def _kept_lines(model: LandmarkModel) -> list[str]:
     return [
         f"kept because       {len(kept) - by_change} azimuth bin(s), {by_change} view "
         "change(s) (a camera moving sideways or forward)"
+    ]
+
+
+def _check_lines(model: LandmarkModel) -> list[str]:
+    c = model.meta.get("check") or {}
+    if not c.get("keyframes"):
+        return []
+    return [
+        f"keyframe check     {c['keyframes']} keyframes solved from the others' points: off by "
+        f"median {1000 * c['median_error_m']:.2f} mm / {c['median_error_deg']:.3f} deg, error "
+        f"scale {c['error_scale']:.2f} (x the predicted sigma; widens every tracked sigma)"
     ]
 
 
@@ -244,6 +256,12 @@ def save_model(res, output, source: dict, t0: float) -> None:
     gap = coverage_warning(model)
     if gap:
         ui.log.warning(gap)
+    suspects = (model.meta.get("check") or {}).get("suspects") or []
+    if suspects:
+        ui.log.warning(
+            f"keyframe(s) {', '.join(suspects[:5])} disagree with the points the other keyframes "
+            "see by over 4 sigma: check their rows in the pose file"
+        )
     r = res.rejected
     ui.echo(f"build-model: wrote {output} in {time.perf_counter() - t0:.1f} s")
     for line in summary_lines(model):
