@@ -119,6 +119,9 @@ def frustum_m(model: LandmarkModel) -> float:
 def _log_model(rr, rec, model: LandmarkModel) -> None:
     """Static: view coordinates, the 3D points and the keyframe cameras with thumbnails."""
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    M = model.world_from_model
+    if not np.array_equal(M, np.eye(3)):  # a model kept levelled: its points into W
+        rec.log("world/model", rr.Transform3D(mat3x3=M), static=True)
     g = point_greys(model)
     rec.log(POINTS, rr.Points3D(model.points, colors=np.stack([g, g, g], 1)), static=True)
     depth, cam = frustum_m(model), model.camera
