@@ -238,12 +238,18 @@ def _rms_ratios(er, ep, sr, sp):
 
 
 def test_covariance_is_honest():
-    """Empirical RMS error over 400 trials matches the reported 1-sigma within 20%."""
+    """Empirical RMS error over 1000 trials matches the reported 1-sigma within 10%.
+
+    8 points: s^2 = cost / (2n - 6) has 10 degrees of freedom, so an estimator that divides
+    by the residual count (2n = 16) reports sigmas sqrt(10 / 16) = 0.79 of the truth (ratio
+    1.26). 1000 trials of 3 errors each resolve the ratio to about 2% (measured 0.99 / 0.99
+    here, 0.95-1.03 over other seeds and sizes), so the band 0.9-1.1 holds ~5 standard
+    errors either side and still catches a sigma 10% off."""
     rng = np.random.default_rng(41)
     er, ep, sr, sp = [], [], [], []
-    for _ in range(400):
-        X, truth, ref = scene(rng, 12)
-        u = CAM.project(X, truth) + rng.normal(scale=1.5, size=(12, 2))
+    for _ in range(1000):
+        X, truth, ref = scene(rng, 8)
+        u = CAM.project(X, truth) + rng.normal(scale=1.5, size=(8, 2))
         est = solve_pose(X, u, CAM, ref)
         assert est.success
         r, t = errs(est.pose, truth)
@@ -254,7 +260,7 @@ def test_covariance_is_honest():
         assert est.covariance.shape == (6, 6)
         assert np.allclose(est.covariance, est.covariance.T)
     rot, pos = _rms_ratios(er, ep, sr, sp)
-    assert 0.8 < rot < 1.2 and 0.8 < pos < 1.2, (rot, pos)
+    assert 0.9 < rot < 1.1 and 0.9 < pos < 1.1, (rot, pos)
 
 
 def _sandwich_sigma(est, X, u, huber_px=None):
