@@ -118,3 +118,54 @@ def _terminal_state_per_test():
 
     ui._state.update(quiet=False, verbose=0)
     yield
+
+
+# --- skips: visible, and only the allowed ones -------------------------------------------
+# `pytest -rs --skip-allowlist tests/skip_allowlist.txt` (what .ci/run runs) fails the run
+# on any skip whose reason contains none of the file's lines: a skip hides a test, so each
+# one there says why it may happen (see the file).
+_SKIPPED: list[tuple[str, str]] = []
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--skip-allowlist", metavar="FILE", default=None,
+        help="fail the run on a skip whose reason contains no line of FILE",
+    )  # fmt: skip
+
+
+def _skip_reason(report) -> str:
+    longrepr = report.longrepr
+    if isinstance(longrepr, tuple) and len(longrepr) == 3:
+        return str(longrepr[2]).removeprefix("Skipped: ")
+    return str(longrepr)
+
+
+def pytest_runtest_logreport(report):
+    if report.skipped and not hasattr(report, "wasxfail"):
+        _SKIPPED.append((report.nodeid, _skip_reason(report)))
+
+
+def pytest_collectreport(report):
+    if report.skipped:  # a whole module skipped
+        _SKIPPED.append((report.nodeid, _skip_reason(report)))
+
+
+def allowed_skips(path: Path) -> list[str]:
+    lines = (ln.strip() for ln in path.read_text().splitlines())
+    return [ln for ln in lines if ln and not ln.startswith("#")]
+
+
+def pytest_sessionfinish(session, exitstatus):
+    path = session.config.getoption("--skip-allowlist")
+    if not path:
+        return
+    allowed = allowed_skips(Path(path))
+    bad = [(n, r) for n, r in _SKIPPED if not any(a in r for a in allowed)]
+    tr = session.config.pluginmanager.get_plugin("terminalreporter")
+    if tr is not None:
+        tr.write_line(f"skips: {len(_SKIPPED)}, of which not in {path}: {len(bad)}")
+        for nodeid, reason in bad:
+            tr.write_line(f"SKIP NOT ALLOWED {nodeid}: {reason}", red=True)
+    if bad and session.exitstatus == 0:
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
