@@ -110,6 +110,35 @@ def sample_model(tmp_path_factory):
     return path
 
 
+def _checkout_state() -> dict:
+    """Size and modification time of every file in the checkout outside build / cache
+    folders: tests write only under tmp_path, never here."""
+    skip = {".git", "build", ".venv", ".venv-ci", "__pycache__", ".pytest_cache", ".ruff_cache",
+            ".hypothesis", "mutants"}  # fmt: skip
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(ROOT):
+        dirnames[:] = [d for d in dirnames if d not in skip and not d.endswith(".egg-info")]
+        for f in filenames:
+            st = os.stat(os.path.join(dirpath, f))
+            out[os.path.join(dirpath, f)] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _checkout_untouched():
+    """The suite leaves the checkout as it found it (sample_data/ above all: a broken
+    output guard once overwrote sample_data/orbit.mp4). Not in mutmut's copy (mutants/),
+    which mutmut itself writes into while the tests run."""
+    if ROOT.name == "mutants":
+        yield
+        return
+    before = _checkout_state()
+    yield
+    after = _checkout_state()
+    changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+    assert not changed, f"tests wrote into the checkout: {changed[:10]}"
+
+
 @pytest.fixture(autouse=True)
 def _terminal_state_per_test():
     """Each test starts with `ui` as a fresh process has it: a CLI run in this process with
