@@ -232,3 +232,52 @@ def test_the_band_layout_puts_each_block_where_the_dense_matrix_has_it(n):
     g = rng.normal(size=6 * n)
     np.testing.assert_allclose(scipy.linalg.solveh_banded(ab, g, lower=True),
                                np.linalg.solve(H, g), rtol=1e-9)  # fmt: skip
+
+
+def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem():
+    """Every orientation the identity, so the problem is linear: the smoothed pose and
+    covariance of each frame are the MAP and the inverse information of the whole window
+    written out densely here: each pose's information (divided by the frames of its
+    anchor), plus a second difference of each frame triple weighted by the white-noise
+    acceleration prior, q = sigma_a^2 dt^3 (rotation in rad). One frame has no pose and two
+    share an anchor (a flowed frame)."""
+    from mirage_cli.smooth import _M, smooth_window
+
+    rng = np.random.default_rng(5)
+    n, dt = 9, 1 / 30
+    s = SmoothSettings(accel_m_s2=2.0, ang_accel_deg_s2=40.0)
+    anchors = [0, 1, 1, 3, None, 5, 6, 7, 8]  # frame 2 flows from 1; frame 4 has no pose
+    window = []
+    for i, anchor in enumerate(anchors):
+        if anchor is None:
+            window.append(None)
+            continue
+        B = rng.normal(size=(6, 6))
+        scale = np.sqrt([1e-6] * 3 + [1e-5] * 3)  # about a mrad and 3 mm
+        cov = scale[:, None] * (B @ B.T + np.eye(6)) * scale[None, :]
+        center = np.array([0.1, 0.02, 0.0]) * i * dt + rng.multivariate_normal(
+            np.zeros(3), cov[3:, 3:] / 10
+        )
+        window.append(_M(np.eye(3), center, np.linalg.inv(cov), np.zeros((6, 6)), anchor,
+                         1.0, 10.0))  # fmt: skip
+    q = np.array([np.radians(40.0) ** 2] * 3 + [2.0**2] * 3) * dt**3
+    H, b = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
+    for i, m in enumerate(window):
+        if m is not None:
+            runs = sum(x is not None and x.anchor == m.anchor for x in window)
+            H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] += m.info / runs
+            b[6 * i : 6 * i + 6] += m.info / runs @ np.r_[0, 0, 0, m.center]
+    for i in range(n - 2):
+        A = np.zeros((6, 6 * n))
+        for j, w in enumerate((1.0, -2.0, 1.0)):
+            A[:, 6 * (i + j) : 6 * (i + j) + 6] = w * np.eye(6)
+        H += A.T @ np.diag(1 / q) @ A
+    x, C = np.linalg.solve(H, b).reshape(n, 6), np.linalg.inv(H)
+    for k in (1, 3, 5, 8):
+        pose, cov = smooth_window(window, k, dt, s)
+        np.testing.assert_allclose(pose.center, x[k, 3:], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(rotvec(pose.R.T), x[k, :3], rtol=0, atol=1e-12)  # R_WC
+        np.testing.assert_allclose(cov, C[6 * k : 6 * k + 6, 6 * k : 6 * k + 6], rtol=1e-7,
+                                   atol=1e-15)  # fmt: skip
+    assert smooth_window(window, 4, dt, s) is None  # no pose of its own
+    assert smooth_window([None, window[1], None], 1, dt, s) is None  # no other pose
