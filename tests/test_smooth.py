@@ -281,3 +281,14 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem():
                                    atol=1e-15)  # fmt: skip
     assert smooth_window(window, 4, dt, s) is None  # no pose of its own
     assert smooth_window([None, window[1], None], 1, dt, s) is None  # no other pose
+
+
+def test_the_smoothing_time_is_added_to_the_frame_time():
+    """`ms` of a smoothed frame is the tracker's time plus the smoothing (a few ms)."""
+    recs = _measure(_orbit(20), np.random.default_rng(8))
+    for r in recs:
+        r.ms = 5.0
+    got = list(run(recs, SmoothSettings(lag=5)))
+    smoothed = [g for g in got[5:15] if g.ms != 5.0]
+    assert len(smoothed) == 10  # every frame with 3 poses either side took some time
+    assert all(5.0 < g.ms < 5.0 + 1000 for g in smoothed), [g.ms for g in smoothed]
