@@ -290,7 +290,9 @@ def test_sandwich_covariance_is_honest_and_sees_a_bad_lever():
     assert est.success
     _, b = _sandwich_sigma(est, X, u, huber_px=0.5)
     assert b > 1.5 * est.sigma_pos_m, (b, est.sigma_pos_m)
-    assert not np.isfinite(sandwich_covariance(X[:3], u[:3], est.pose, CAM)).any()
+    few = sandwich_covariance(X[:3], u[:3], est.pose, CAM)
+    assert few.shape == (6, 6) and not np.isfinite(few).any()  # 3 points: no redundancy
+    assert np.isfinite(sandwich_covariance(X[:4], u[:4], est.pose, CAM)).all()  # 4 do
 
 
 def test_compiled_sandwich_is_the_matrix_formula():
