@@ -327,6 +327,20 @@ def test_compiled_sandwich_is_the_matrix_formula():
     assert not np.allclose(plain, robust, rtol=1e-3)  # the outliers' weights matter
 
 
+def test_cramer_rao_bound_scales_with_the_pixel_noise_and_needs_points_in_front():
+    """(J^T J)^-1 sigma^2: the bound at sigma s is s^2 times the bound at 1 px; a point at
+    or behind the camera gives a 6x6 of NaN."""
+    rng = np.random.default_rng(3)
+    X, truth, _ = scene(rng, 10)
+    one = cramer_rao_covariance(X, truth, CAM, 1.0)
+    for s in (0.5, 3.0):
+        np.testing.assert_allclose(cramer_rao_covariance(X, truth, CAM, s), s**2 * one,
+                                   rtol=1e-12)  # fmt: skip
+    behind = np.vstack([X, truth.inverse().transform(np.array([[0.0, 0.0, -1.0]]))])
+    bad = cramer_rao_covariance(behind, truth, CAM, 1.0)
+    assert bad.shape == (6, 6) and np.isnan(bad).all()
+
+
 def test_covariance_three_points_uses_prior_sigma():
     rng = np.random.default_rng(42)
     X, truth, ref = scene(rng, 3, False, 5.0)
