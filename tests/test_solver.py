@@ -341,6 +341,45 @@ def test_cramer_rao_bound_scales_with_the_pixel_noise_and_needs_points_in_front(
     assert bad.shape == (6, 6) and np.isnan(bad).all()
 
 
+def test_the_noise_estimate_divides_the_cost_by_the_degrees_of_freedom():
+    """Without robust weights s^2 = sum r^2 / (2n - 6) over the pixel residuals at the
+    solution (written out here); a known pixel sigma replaces it and scales the covariance
+    by its square."""
+    rng = np.random.default_rng(8)
+    X, truth, ref = scene(rng, 9)
+    u = CAM.project(X, truth) + rng.normal(scale=0.7, size=(9, 2))
+    est = solve_pose(X, u, CAM, ref, refine=RefineOptions(robust="none"))
+    r = CAM.project(X, est.pose) - u
+    assert est.sigma_px**2 == pytest.approx(np.sum(r**2) / (2 * 9 - 6), rel=1e-6)
+    for s in (1.0, 3.0):
+        known = solve_pose(X, u, CAM, ref, refine=RefineOptions(robust="none", pixel_sigma=s))
+        assert known.sigma_px == s
+        np.testing.assert_allclose(known.covariance, est.covariance * s**2 / est.sigma_px**2,
+                                   rtol=1e-9)  # fmt: skip
+
+
+def test_a_solution_behind_the_camera_or_on_two_inliers_is_a_sound_failure():
+    """The checks at the solution (`_finish`): every point must be in front, at least 3 must
+    carry the pose; the failure keeps the count, method and iterations."""
+    from mirage_cli.solver import _finish, _Problem
+
+    rng = np.random.default_rng(4)
+    X, truth, _ = scene(rng, 6)
+    Xc = truth.transform(X)
+    prob = _Problem(X, Xc[:, :2] / Xc[:, 2:], CAM.fx, CAM.fy)
+    res = {"R": truth.R, "t": truth.t, "iterations": 7, "wt": np.ones(6),
+           "r2": prob.point_r2(truth.R, truth.t), "H": np.eye(6)}  # fmt: skip
+    behind = {**res, "t": truth.t - [0.0, 0.0, 10.0]}
+    two = {**res, "wt": np.array([1.0, 1.0, 0, 0, 0, 0])}
+    for r, reason in ((behind, "points behind the camera at the solution"),
+                      (two, "fewer than 3 inliers")):  # fmt: skip
+        est = _finish(prob, r, 6, np.ones(6, bool), "m", None, 1.0)
+        assert not est.success and est.pose is None and est.reason == reason
+        assert est.iterations == 7 and est.method == "m"
+        assert len(est.inliers) == 6 and not est.inliers.any()
+    assert _finish(prob, res, 6, np.ones(6, bool), "m", None, 1.0).success
+
+
 def test_covariance_three_points_uses_prior_sigma():
     rng = np.random.default_rng(42)
     X, truth, ref = scene(rng, 3, False, 5.0)
