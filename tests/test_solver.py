@@ -371,13 +371,20 @@ def test_a_solution_behind_the_camera_or_on_two_inliers_is_a_sound_failure():
            "r2": prob.point_r2(truth.R, truth.t), "H": np.eye(6)}  # fmt: skip
     behind = {**res, "t": truth.t - [0.0, 0.0, 10.0]}
     two = {**res, "wt": np.array([1.0, 1.0, 0, 0, 0, 0])}
+    singular = "singular system (degenerate point configuration)"
     for r, reason in ((behind, "points behind the camera at the solution"),
-                      (two, "fewer than 3 inliers")):  # fmt: skip
+                      (two, "fewer than 3 inliers"), ({**res, "H": np.zeros((6, 6))}, singular),
+                      ({**res, "H": np.full((6, 6), np.nan)}, singular)):  # fmt: skip
         est = _finish(prob, r, 6, np.ones(6, bool), "m", None, 1.0)
         assert not est.success and est.pose is None and est.reason == reason
         assert est.iterations == 7 and est.method == "m"
         assert len(est.inliers) == 6 and not est.inliers.any()
     assert _finish(prob, res, 6, np.ones(6, bool), "m", None, 1.0).success
+    # three points: no redundancy to estimate the noise, the default sigma is used
+    three = {**res, "wt": np.array([1.0, 1.0, 1.0, 0, 0, 0])}
+    est = _finish(prob, three, 6, np.ones(6, bool), "m", None, 3.0)
+    assert est.success and est.sigma_px == 3.0
+    np.testing.assert_allclose(est.covariance, np.eye(6) * 9.0, rtol=1e-12)  # H^-1 s^2
 
 
 def test_covariance_three_points_uses_prior_sigma():
