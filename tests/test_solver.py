@@ -379,7 +379,8 @@ def test_a_solution_behind_the_camera_or_on_two_inliers_is_a_sound_failure():
         assert not est.success and est.pose is None and est.reason == reason
         assert est.iterations == 7 and est.method == "m"
         assert len(est.inliers) == 6 and not est.inliers.any()
-    assert _finish(prob, res, 6, np.ones(6, bool), "m", None, 1.0).success
+    ok = _finish(prob, res, 6, np.ones(6, bool), "m", None, 1.0)
+    assert ok.success and ok.reason == "" and ok.iterations == 7 and ok.method == "m"
     # three points: no redundancy to estimate the noise, the default sigma is used
     three = {**res, "wt": np.array([1.0, 1.0, 1.0, 0, 0, 0])}
     est = _finish(prob, three, 6, np.ones(6, bool), "m", None, 3.0)
