@@ -251,7 +251,7 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
 
     rng = np.random.default_rng(5)
     n, dt = len(anchors), 1 / 30
-    s = SmoothSettings(accel_m_s2=2.0, ang_accel_deg_s2=40.0)
+    s = SmoothSettings(accel_m_s2=3.0, ang_accel_deg_s2=40.0)  # (3: 3^2 != 2 * 3)
     window = []
     for i, anchor in enumerate(anchors):
         if anchor is None:
@@ -265,7 +265,7 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
         )
         window.append(_M(np.eye(3), center, np.linalg.inv(cov), np.zeros((6, 6)), anchor,
                          1.0, 10.0))  # fmt: skip
-    q = np.array([np.radians(40.0) ** 2] * 3 + [2.0**2] * 3) * dt**3
+    q = np.array([np.radians(40.0) ** 2] * 3 + [3.0**2] * 3) * dt**3
     H, b = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
     for i, m in enumerate(window):
         if m is not None:
@@ -355,8 +355,9 @@ def test_the_smoother_windows_the_stretch_and_times_the_prior(fps):
     times = [i / fps if fps else float("nan") for i in range(n)]
     shared = np.diag([1e-8] * 3 + [1e-6] * 3)
     recs = _records(truth, times, shared)
-    # 4 frames without a pose split (3-6, 23-26), 3 are bridged (9-11, 17-19): frames 7-22
-    for i in (3, 4, 5, 6, 9, 10, 11, 17, 18, 19, 23, 24, 25, 26):
+    # 4 frames without a pose split (3-6, 23-26), 3 are bridged (11-13, 15-17, next to the
+    # frame): its window is frames 7-22
+    for i in (3, 4, 5, 6, 11, 12, 13, 15, 16, 17, 23, 24, 25, 26):
         recs[i] = FrameRecord(Status.LOST, frame=i, time_s=times[i])
     s = SmoothSettings(lag=lag, fps=30.0)
     got = {r.frame: r for r in run([copy_record(r) for r in recs], s)}[k]
