@@ -2,7 +2,6 @@
 board path end to end, and one-line errors for bad input."""
 
 import shutil
-import time
 import zipfile
 
 import cv2
@@ -69,10 +68,10 @@ def test_keyframe_poses_are_the_given_ones(model):
         assert len(kp) == len(desc) == len(pid) == kf.n_linked and (pid >= 0).all()
 
 
-def test_round_trip_and_load_time(model, built, tmp_path):
-    t0 = time.perf_counter()
+def test_round_trip(model, built, tmp_path):
+    """(The load time is benchmarks/build_model.py's: a timed assertion is flaky on a
+    loaded machine.)"""
     again = LandmarkModel.load(built[0])
-    assert time.perf_counter() - t0 < 0.5
     again.save(tmp_path / "copy.mirage")
     copy = LandmarkModel.load(tmp_path / "copy.mirage")
     assert np.array_equal(copy.points, model.points)

@@ -33,11 +33,29 @@ TRUTH = ROOT / "sample_data" / "camera_truth.yaml"
 # with an 11 px half-window = 23x23 px, no outlier rejection).
 REFERENCE = {"fx": 542.35, "fy": 541.62, "cx": 328.32, "cy": 246.95, "rms": 0.459}
 # On these 640x480 photos the corner spacing is 21-35 px, so that window reaches
-# across squares and moves some corners by 2-5 px (right02: 1.2 px view RMS). With a
-# window of 1/4 the spacing (our default) half-windows of 3, 5 and 8 px all agree
-# within 0.5 px on the values below, at RMS 0.19-0.25 px; on synthetic renders every
-# window size lands within 0.2 px of the truth. See the report for issue 3.
-ADAPTIVE = {"fx": 537.5, "fy": 537.0, "cx": 327.4, "cy": 249.0}
+# across squares and moves some corners by 2-5 px (right02: 1.2 px view RMS). Our default
+# (1/4 the spacing) is checked against the same photos calibrated by plain OpenCV with a
+# 5 px half-window (`opencv_truth`, no code of ours): measured 0.01 / 0.02 px apart on fx /
+# fy and 0.29 / 0.07 px on cx / cy; a 3 px half-window moves plain OpenCV's focal lengths
+# by 0.65 px. On synthetic renders the truth is the generator's (camera_truth.yaml).
+FOCAL_TOL_PX, CENTRE_TOL_PX = 0.3, 0.6
+
+
+def opencv_truth() -> dict:
+    """fx fy cx cy of the real photos by OpenCV alone: findChessboardCorners, cornerSubPix
+    (5 px half-window), calibrateCamera with its default 5-coefficient model."""
+    obj = np.zeros((54, 3), np.float32)
+    obj[:, :2] = np.mgrid[0:9, 0:6].T.reshape(-1, 2) * 0.025
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)
+    objs, corners = [], []
+    for f in sorted(REAL.glob("*.jpg")):
+        gray = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        found, c = cv2.findChessboardCorners(gray, (9, 6))
+        if found:
+            objs.append(obj)
+            corners.append(cv2.cornerSubPix(gray, c, (5, 5), (-1, -1), crit))
+    _, K, _, _, _ = cv2.calibrateCamera(objs, corners, gray.shape[::-1], None, None)
+    return {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
 
 
 def assert_one_line_error(r, *words):
@@ -73,8 +91,9 @@ def test_real_photos_default(real_run):
     r, out = real_run
     cam = Camera.load(out / "camera.yaml")
     got = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
-    for k, v in ADAPTIVE.items():
-        assert abs(got[k] - v) < 1.5, (k, got[k])
+    for k, v in opencv_truth().items():
+        tol = FOCAL_TOL_PX if k in ("fx", "fy") else CENTRE_TOL_PX
+        assert abs(got[k] - v) < tol, (k, got[k], v)
     assert cam.rms_px < 0.3  # reference pipeline: 0.459
     assert "RMS reprojection error" in r.stdout and "fx 537" in r.stdout
 
@@ -124,15 +143,20 @@ def test_camera_yaml_round_trip(real_run):
 
 # --- synthetic renders with known truth ---------------------------------------------------
 def test_synthetic_against_truth(tmp_path):
-    if not SYNTH.is_dir() or not TRUTH.is_file():
-        pytest.skip("sample_data/calibration not generated yet")  # committed: runs in CI
+    """Against the generator's camera (camera_truth.yaml). Measured at dc25f7f: fx +0.05,
+    fy +0.07, cx -0.29, cy -0.20 px, k1 -0.0005, k2 +0.0025, RMS 0.041 px; limits about
+    3x the focal and 2x the centre errors (not 1% = 5 px)."""
     r = mirage("calibrate", SYNTH, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml")
     assert r.returncode == 0, r.stderr
     cam, truth = Camera.load(tmp_path / "c.yaml"), Camera.load(TRUTH)
     assert len(list(SYNTH.glob("*.jpg"))) >= 15
-    for k in ("fx", "fy", "cx", "cy"):
-        assert abs(getattr(cam, k) - getattr(truth, k)) < 0.01 * getattr(truth, k), k
-    assert cam.rms_px < 0.5
+    for k in ("fx", "fy"):
+        assert abs(getattr(cam, k) - getattr(truth, k)) < 0.2, (k, getattr(cam, k))
+    for k in ("cx", "cy"):
+        assert abs(getattr(cam, k) - getattr(truth, k)) < 0.5, (k, getattr(cam, k))
+    k_err = np.abs(cam.dist.ravel()[:2] - truth.dist.ravel()[:2])
+    assert k_err[0] < 0.003 and k_err[1] < 0.01, k_err
+    assert cam.rms_px < 0.1
 
 
 def test_charuco_rendered_views():

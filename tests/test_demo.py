@@ -2,7 +2,6 @@
 
 import numpy as np
 import pandas as pd
-import pytest
 import yaml
 from conftest import SAMPLE, assert_one_line_error
 
@@ -18,7 +17,6 @@ def test_demo_missing_sample_data(tmp_path, mirage):
     assert_one_line_error(proc, 2, "lacks calibration")
 
 
-@pytest.mark.skipif(not (SAMPLE / "orbit.mp4").exists(), reason="sample orbit not generated")
 def test_demo_end_to_end(tmp_path, mirage):
     out = tmp_path / "demo"
     proc = mirage("demo", "--out", out)

@@ -389,6 +389,11 @@ CASES = [
     C("report-summary-is-poses", *REPORT, "--summary", "{TRUTH}", contains="same file"),
     C("report-plot-is-path", *REPORT, "--plot", "{PATH}", contains="same file"),
     C("report-out-is-summary", *REPORT, "--summary", "out.csv", contains="same file"),
+    # a hard link of an input is the same file under another name (same inode)
+    C("report-out-is-hard-link", "report", "kp.csv", "--path", "{PATH}", "-o", "kp_link.csv",
+      needs=["kp_copy", "hard_link"], contains="same file"),  # fmt: skip
+    C("track-overlay-is-hard-link", *TRACK, "--overlay", "v_link.mp4", needs=["v_link"],
+      contains="same file"),  # fmt: skip
     C(
         "report-poses-dup",
         "report",
@@ -477,7 +482,8 @@ CASES = [
         contains="same file",
     ),  # fmt: skip
     # --- demo ----------------------------------------------------------------------------
-    C("demo-out-is-sample", "demo", "--out", "{SAMPLE}", contains="sample data"),
+    C("demo-out-is-sample", "demo", "--out", "{SAMPLE}", "--sample-data", "{SAMPLE}",
+      contains="sample data"),  # fmt: skip
     C("demo-sample-missing", "demo", "--sample-data", "nope", contains="not found"),
 ]
 
@@ -543,19 +549,44 @@ def assert_contract(code, err, want_code, contains="", prefix="mirage: error: ")
     return lines[0]
 
 
+INPUTS = ("V", "M", "CAM", "KF", "KP", "PATH", "TRUTH", "CAL", "SAMPLE")
+
+
+def _copies(args: list, world: dict) -> dict:
+    """`world` with each input the case names replaced by a copy in tmp_path/in: a case
+    that passes an input as an output then risks a copy if the output guard is broken,
+    never the checkout (or the session's model, which later tests use)."""
+    out = dict(world)
+    for key in INPUTS:
+        if any(f"{{{key}}}" in str(a) for a in args):
+            src = Path(world[key])
+            dest = world["TMP"] / "in" / key / src.name
+            dest.parent.mkdir(parents=True)
+            (shutil.copytree if src.is_dir() else shutil.copyfile)(src, dest)
+            out[key] = dest
+    return out
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_catalogue(case: Case, world, capsys, monkeypatch):
     tmp = world["TMP"]
     monkeypatch.chdir(tmp)
+    originals = world
+    world = _copies(case.args, world)
     if "kp_copy" in case.needs:
         shutil.copyfile(world["KP"], tmp / "kp.csv")
+    if "hard_link" in case.needs:
+        os.link(tmp / "kp.csv", tmp / "kp_link.csv")
+    if "v_link" in case.needs:  # (the video is a copy: the case names it)
+        os.link(world["V"], tmp / "v_link.mp4")
     if "synth_cam" in case.needs:
         (tmp / "so").mkdir()
         shutil.copyfile(world["CAM"], tmp / "so" / "camera_truth.yaml")
     if "config" in case.needs:
         (tmp / "mirage.yaml").write_text(f"track:\n  model: {world['M']}\n  max-rmse: .nan\n")
-    watched = [tmp, world["M"], world["CAM"], world["KP"], world["TRUTH"], world["PATH"]]
-    watched += [world["V"], CAL / "right01.jpg"]
+    # the copies (inside tmp) and the originals they were made from
+    watched = [tmp, originals["M"], originals["CAM"], originals["KP"], originals["TRUTH"]]
+    watched += [originals["PATH"], originals["V"], CAL / "right01.jpg"]
     before = _snapshot(watched)
     code, err, warned = run_in_process(_fill(case.args, world), capsys)
     assert_contract(code, err, case.code, case.contains)
@@ -691,12 +722,33 @@ def test_signal_during_start_up(sig, code, world):
     assert not _hidden(tmp)
 
 
+# `python -m mirage_cli` whose model entries each take 0.2 s more to write, so that a signal
+# sent once the model's temporary file exists surely lands while the model is written
+WRITE_SLOWLY = """
+import sys, time, zipfile
+from mirage_cli import signals
+signals.install()
+_writestr = zipfile.ZipFile.writestr
+def writestr(self, *a, **k):
+    _writestr(self, *a, **k)
+    time.sleep(0.2)
+zipfile.ZipFile.writestr = writestr
+from mirage_cli.cli import main
+main(sys.argv[1:])
+"""
+
+
 def test_sigterm_while_writing_the_model_leaves_no_temp_file(world):
     """SIGTERM while build-model writes its (multi-MB) model: the temporary file goes, the
-    previous model stays as it was, exit 143."""
+    previous model stays as it was, exit 143. The model's entries are written slowly (0.2 s
+    each), so the signal always lands mid-write."""
     tmp = world["TMP"]
     args = [*_fill(BUILD, world), "--poses", world["KP"], "--spacing-deg", "40"]
-    p = _popen(args, tmp, stdout=subprocess.DEVNULL)
+    p = subprocess.Popen(
+        [sys.executable, "-c", WRITE_SLOWLY, *map(str, args)], cwd=tmp,
+        env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
     t0, seen = time.monotonic(), False
     while p.poll() is None and time.monotonic() - t0 < 300:
         if list(tmp.glob(".out.mirage.*")):  # the model is being written
@@ -705,11 +757,9 @@ def test_sigterm_while_writing_the_model_leaves_no_temp_file(world):
             break
         time.sleep(0.002)
     _, err = p.communicate(timeout=120)
-    if not seen:  # too fast to catch: at least it finished cleanly
-        assert p.returncode == 0, err
-    else:
-        assert_contract(p.returncode, err, 143, prefix="mirage: interrupted (SIGTERM)")
-        assert (tmp / "out.mirage").read_text() == PROTECTED["out.mirage"]
+    assert seen, (p.returncode, err)
+    assert_contract(p.returncode, err, 143, prefix="mirage: interrupted (SIGTERM)")
+    assert (tmp / "out.mirage").read_text() == PROTECTED["out.mirage"]
     assert not _hidden(tmp), _hidden(tmp)
 
 

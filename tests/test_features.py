@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import SAMPLE, run_mirage
-from test_track import errors  # pose / rotation / relative error of the ok rows
+from test_track import assert_accuracy, errors  # errors of the ok rows; limits
 
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
@@ -95,7 +95,8 @@ def _sample_model(tmp_path, detector: str):
 
 
 def test_rootsift_model_tracks_the_orbit(tmp_path):
-    """`--detector rootsift` end to end: as accurate as SIFT (test_track's thresholds)."""
+    """`--detector rootsift` end to end: as accurate as SIFT (its own measured figures,
+    with test_track's margins)."""
     model = _sample_model(tmp_path, "rootsift")
     m = LandmarkModel.load(model)
     assert m.detector.name == "rootsift" and len(m.points) > 3000
@@ -110,9 +111,9 @@ def test_rootsift_model_tracks_the_orbit(tmp_path):
     vis = truth["landmark_visible"].to_numpy()
     ok = (est["status"] == "ok").to_numpy()
     assert ok[vis >= 0.3].mean() >= 0.99 and not ok[vis == 0].any()
-    pos, rot, rel = errors(est, truth.reset_index())
-    assert np.sum((pos > 0.10) | (rot > 5.0)) == 0  # no wrong poses
-    assert np.median(rel) <= 0.003 and np.median(rot) <= 0.2
+    pos, rot, _ = errors(est, truth.reset_index())
+    # measured at dc25f7f (every 2nd frame): 1.46 / 3.40 / 5.63 mm, 0.059 / 0.133 / 0.230 deg
+    assert_accuracy(pos, rot, (1.46, 3.40, 5.63), (0.059, 0.133, 0.230))
 
 
 def test_orb_model_tracks_the_start_of_the_orbit(tmp_path):
@@ -125,5 +126,6 @@ def test_orb_model_tracks_the_start_of_the_orbit(tmp_path):
     est = read_pose_csv(csv)
     assert (est["status"] == "ok").mean() >= 0.95
     truth = read_pose_csv(SAMPLE / "orbit_truth.csv").set_index("frame").loc[est["frame"]]
-    pos, rot, rel = errors(est, truth.reset_index())
-    assert pos.max() < 0.03 and np.median(rel) <= 0.003 and np.median(rot) <= 0.2
+    pos, rot, _ = errors(est, truth.reset_index())
+    # measured at dc25f7f (60 frames): 3.11 / 6.24 / 7.93 mm, 0.128 / 0.219 / 0.271 deg
+    assert_accuracy(pos, rot, (3.11, 6.24, 7.93), (0.128, 0.219, 0.271))

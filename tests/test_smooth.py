@@ -18,6 +18,7 @@ from mirage_cli.smooth import (
     run,
     world_covariance,
 )
+from mirage_cli.solver import sigmas
 from mirage_cli.trajectory import FrameRecord, Measurement, Status
 
 FPS = 30.0
@@ -232,3 +233,178 @@ def test_the_band_layout_puts_each_block_where_the_dense_matrix_has_it(n):
     g = rng.normal(size=6 * n)
     np.testing.assert_allclose(scipy.linalg.solveh_banded(ab, g, lower=True),
                                np.linalg.solve(H, g), rtol=1e-9)  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "anchors, ks",
+    [([0, 1, 1, 3, None, 5, 6, 7, 8], (1, 3, 5, 8)), ([0, 1, 2], (0, 1, 2))],
+    ids=["9 frames", "3 frames"],
+)
+def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
+    """Every orientation the identity, so the problem is linear: the smoothed pose and
+    covariance of each frame are the MAP and the inverse information of the whole window
+    written out densely here: each pose's information (divided by the frames of its
+    anchor), plus a second difference of each frame triple weighted by the white-noise
+    acceleration prior, q = sigma_a^2 dt^3 (rotation in rad). In the 9 frames one has no
+    pose and two share an anchor (a flowed frame); 3 frames are the shortest with a prior."""
+    from mirage_cli.smooth import _M, smooth_window
+
+    rng = np.random.default_rng(5)
+    n, dt = len(anchors), 1 / 30
+    s = SmoothSettings(accel_m_s2=3.0, ang_accel_deg_s2=40.0)  # (3: 3^2 != 2 * 3)
+    window = []
+    for i, anchor in enumerate(anchors):
+        if anchor is None:
+            window.append(None)
+            continue
+        B = rng.normal(size=(6, 6))
+        scale = np.sqrt([1e-6] * 3 + [1e-5] * 3)  # about a mrad and 3 mm
+        cov = scale[:, None] * (B @ B.T + np.eye(6)) * scale[None, :]
+        center = np.array([0.1, 0.02, 0.0]) * i * dt + rng.multivariate_normal(
+            np.zeros(3), cov[3:, 3:] / 10
+        )
+        window.append(_M(np.eye(3), center, np.linalg.inv(cov), np.zeros((6, 6)), anchor,
+                         1.0, 10.0))  # fmt: skip
+    q = np.array([np.radians(40.0) ** 2] * 3 + [3.0**2] * 3) * dt**3
+    H, b = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
+    for i, m in enumerate(window):
+        if m is not None:
+            runs = sum(x is not None and x.anchor == m.anchor for x in window)
+            H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] += m.info / runs
+            b[6 * i : 6 * i + 6] += m.info / runs @ np.r_[0, 0, 0, m.center]
+    for i in range(n - 2):
+        A = np.zeros((6, 6 * n))
+        for j, w in enumerate((1.0, -2.0, 1.0)):
+            A[:, 6 * (i + j) : 6 * (i + j) + 6] = w * np.eye(6)
+        H += A.T @ np.diag(1 / q) @ A
+    x, C = np.linalg.solve(H, b).reshape(n, 6), np.linalg.inv(H)
+    for k in ks:
+        pose, cov = smooth_window(window, k, dt, s)
+        np.testing.assert_allclose(pose.center, x[k, 3:], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(rotvec(pose.R.T), x[k, :3], rtol=0, atol=1e-12)  # R_WC
+        np.testing.assert_allclose(cov, C[6 * k : 6 * k + 6, 6 * k : 6 * k + 6], rtol=1e-7,
+                                   atol=1e-15)  # fmt: skip
+    if None in window:
+        assert smooth_window(window, window.index(None), dt, s) is None  # no pose of its own
+    assert smooth_window([None, window[1], None], 1, dt, s) is None  # no other pose
+    # two poses and no prior (it needs three frames): each keeps its own pose and covariance
+    pose, cov = smooth_window(window[:2], 0, dt, s)
+    np.testing.assert_allclose(pose.center, window[0].center, atol=1e-12)
+    np.testing.assert_allclose(cov, np.linalg.inv(window[0].info), rtol=1e-7, atol=1e-15)
+
+
+def _M_of(pose, sig_w=SIG_W, sig_v=SIG_V):
+    from mirage_cli.smooth import prepare
+
+    cov = np.diag([sig_w**2] * 3 + [sig_v**2] * 3)
+    return prepare(Measurement(pose, cov, np.zeros((6, 6))))
+
+
+def test_a_frame_between_poses_at_a_constant_rate_is_on_the_path():
+    """Noise-free poses turning 20 deg a frame at a constant rate, one frame without a pose:
+    the MAP is the path itself (no residual, no second difference), reached in one step
+    only from a start on it (the missing frame interpolated halfway, at the right rate)."""
+    from mirage_cli.smooth import smooth_window
+
+    n, dt = 7, 1 / 30
+    truth = []
+    for i in range(n):  # R_WC turning about W's z; the centre at a constant velocity
+        R_wc = rodrigues([0, 0, np.radians(20) * i]) @ rodrigues([1.2, 0.3, 0.1])
+        c = np.array([0.3, -0.1, 2.0]) + [0.05 * i, 0.01 * i, 0]
+        truth.append(Pose(R_wc.T, -R_wc.T @ c))
+    window = [None if i == 3 else _M_of(T) for i, T in enumerate(truth)]
+    for k in (2, 4):
+        pose, _ = smooth_window(window, k, dt, SmoothSettings())
+        assert pose.angle_to(truth[k]) < 1e-5 and pose.distance_to(truth[k]) < 1e-9  # deg, m
+
+
+def test_outliers_are_dropped_down_to_two_poses():
+    """A wild pose is dropped while two others remain (3 poses: the frame keeps its
+    smoothed pose). (Two poses always fit a constant-velocity path: none is ever wild.)"""
+    from mirage_cli.smooth import smooth_window
+
+    truth = _orbit(3)
+    window = [_M_of(T) for T in truth]
+    wild = Pose(truth[2].R, truth[2].t + [0.5, 0, 0])
+    window[2] = _M_of(wild)
+    got = smooth_window(window, 0, 1 / 30, SmoothSettings())
+    assert got is not None and got[0].distance_to(truth[0]) < 1e-6
+
+
+def _records(truth, times, shared=None, max_pos=np.inf, max_rot=np.inf, seed=3):
+    rng = np.random.default_rng(seed)
+    recs = _measure(truth, rng)
+    for r, t in zip(recs, times, strict=True):
+        r.time_s = t
+        m = r.measurement
+        r.measurement = Measurement(m.pose, m.cov, shared if shared is not None else m.cov_shared,
+                                    m.anchor, max_pos, max_rot)  # fmt: skip
+    return recs
+
+
+@pytest.mark.parametrize("fps", [20.0, None])
+def test_the_smoother_windows_the_stretch_and_times_the_prior(fps):
+    """A frame's window is every pose within `lag` frames that no gap longer than
+    `max_gap` separates from it (a gap of exactly 3 frames is bridged, 4 split), the
+    prior's dt is the median step of the stamps (or 1 / fps without stamps), and the
+    model's shared error is added back to the smoothed covariance."""
+    from mirage_cli.smooth import prepare, smooth_window
+
+    n, k, lag = 30, 14, 12
+    truth = _orbit(n)
+    times = [i / fps if fps else float("nan") for i in range(n)]
+    shared = np.diag([1e-8] * 3 + [1e-6] * 3)
+    recs = _records(truth, times, shared)
+    # 4 frames without a pose split (3-6, 23-26), 3 are bridged (11-13, 15-17, next to the
+    # frame): its window is frames 7-22
+    for i in (3, 4, 5, 6, 11, 12, 13, 15, 16, 17, 23, 24, 25, 26):
+        recs[i] = FrameRecord(Status.LOST, frame=i, time_s=times[i])
+    s = SmoothSettings(lag=lag, fps=30.0)
+    got = {r.frame: r for r in run([copy_record(r) for r in recs], s)}[k]
+    window = [prepare(r.measurement) if r.measurement else None for r in recs[7:23]]
+    dt = 1 / fps if fps else 1 / 30
+    pose, cov = smooth_window(window, k - 7, float(f"{dt:.4g}"), s)
+    assert got.status == Status.OK
+    assert got.pose.distance_to(pose) < 1e-12 and got.pose.angle_to(pose) < 1e-5
+    pos, rot = sigmas(cov + world_covariance(shared, recs[k].measurement.pose))
+    assert got.sigma_pos_m == pytest.approx(min(pos, recs[k].sigma_pos_m), rel=1e-9)
+    assert got.sigma_rot_deg == pytest.approx(min(rot, recs[k].sigma_rot_deg), rel=1e-9)
+
+
+def copy_record(r):
+    import copy
+
+    return copy.copy(r)
+
+
+def test_the_smoothed_pose_is_gated_like_a_tracked_one():
+    """ok only when both sigmas are within the frame's own limits (at the limit: ok)."""
+    truth = _orbit(9)
+    base = {r.frame: r for r in run(_records(truth, [i / 30 for i in range(9)]),
+                                    SmoothSettings(lag=4))}[4]  # fmt: skip
+    pos, rot = base.sigma_pos_m, base.sigma_rot_deg
+    for max_pos, max_rot, want in ((pos, rot, Status.OK), (pos * 0.99, 10 * rot, Status.UNCERTAIN),
+                                   (10 * pos, rot * 0.99, Status.UNCERTAIN)):  # fmt: skip
+        recs = _records(truth, [i / 30 for i in range(9)], max_pos=max_pos, max_rot=max_rot)
+        got = {r.frame: r for r in run(recs, SmoothSettings(lag=4))}[4]
+        assert got.status == want, (max_pos, max_rot, got.status)
+        assert (got.pose is None) == (want == Status.UNCERTAIN)
+
+
+def test_a_lag_of_one_smooths_with_min_side_one():
+    truth = _orbit(5)
+    recs = _records(truth, [i / 30 for i in range(5)])
+    tracked = recs[2].pose
+    got = list(run(recs, SmoothSettings(lag=1, min_side=1)))
+    assert got[2].status == Status.OK and got[2].pose.distance_to(tracked) > 1e-6
+
+
+def test_the_smoothing_time_is_added_to_the_frame_time():
+    """`ms` of a smoothed frame is the tracker's time plus the smoothing (a few ms)."""
+    recs = _measure(_orbit(20), np.random.default_rng(8))
+    for r in recs:
+        r.ms = 5.0
+    got = list(run(recs, SmoothSettings(lag=5)))
+    smoothed = [g for g in got[5:15] if g.ms != 5.0]
+    assert len(smoothed) == 10  # every frame with 3 poses either side took some time
+    assert all(5.0 < g.ms < 5.0 + 1000 for g in smoothed), [g.ms for g in smoothed]

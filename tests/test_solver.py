@@ -7,9 +7,7 @@ the Fisher information J^T J / sigma^2 at the true pose, RMS over the same scene
 from __future__ import annotations
 
 import math
-import time
 
-import cv2
 import numpy as np
 import pytest
 
@@ -238,12 +236,18 @@ def _rms_ratios(er, ep, sr, sp):
 
 
 def test_covariance_is_honest():
-    """Empirical RMS error over 400 trials matches the reported 1-sigma within 20%."""
+    """Empirical RMS error over 1000 trials matches the reported 1-sigma within 10%.
+
+    8 points: s^2 = cost / (2n - 6) has 10 degrees of freedom, so an estimator that divides
+    by the residual count (2n = 16) reports sigmas sqrt(10 / 16) = 0.79 of the truth (ratio
+    1.26). 1000 trials of 3 errors each resolve the ratio to about 2% (measured 0.99 / 0.99
+    here, 0.95-1.03 over other seeds and sizes), so the band 0.9-1.1 holds ~5 standard
+    errors either side and still catches a sigma 10% off."""
     rng = np.random.default_rng(41)
     er, ep, sr, sp = [], [], [], []
-    for _ in range(400):
-        X, truth, ref = scene(rng, 12)
-        u = CAM.project(X, truth) + rng.normal(scale=1.5, size=(12, 2))
+    for _ in range(1000):
+        X, truth, ref = scene(rng, 8)
+        u = CAM.project(X, truth) + rng.normal(scale=1.5, size=(8, 2))
         est = solve_pose(X, u, CAM, ref)
         assert est.success
         r, t = errs(est.pose, truth)
@@ -254,7 +258,7 @@ def test_covariance_is_honest():
         assert est.covariance.shape == (6, 6)
         assert np.allclose(est.covariance, est.covariance.T)
     rot, pos = _rms_ratios(er, ep, sr, sp)
-    assert 0.8 < rot < 1.2 and 0.8 < pos < 1.2, (rot, pos)
+    assert 0.9 < rot < 1.1 and 0.9 < pos < 1.1, (rot, pos)
 
 
 def _sandwich_sigma(est, X, u, huber_px=None):
@@ -286,7 +290,9 @@ def test_sandwich_covariance_is_honest_and_sees_a_bad_lever():
     assert est.success
     _, b = _sandwich_sigma(est, X, u, huber_px=0.5)
     assert b > 1.5 * est.sigma_pos_m, (b, est.sigma_pos_m)
-    assert not np.isfinite(sandwich_covariance(X[:3], u[:3], est.pose, CAM)).any()
+    few = sandwich_covariance(X[:3], u[:3], est.pose, CAM)
+    assert few.shape == (6, 6) and not np.isfinite(few).any()  # 3 points: no redundancy
+    assert np.isfinite(sandwich_covariance(X[:4], u[:4], est.pose, CAM)).all()  # 4 do
 
 
 def test_compiled_sandwich_is_the_matrix_formula():
@@ -319,6 +325,67 @@ def test_compiled_sandwich_is_the_matrix_formula():
         assert np.allclose(got, want, rtol=1e-9, atol=0), huber
     plain, robust = (sandwich_covariance(X, u, pose, CAM, h) for h in (None, 0.5))
     assert not np.allclose(plain, robust, rtol=1e-3)  # the outliers' weights matter
+
+
+def test_cramer_rao_bound_scales_with_the_pixel_noise_and_needs_points_in_front():
+    """(J^T J)^-1 sigma^2: the bound at sigma s is s^2 times the bound at 1 px; a point at
+    or behind the camera gives a 6x6 of NaN."""
+    rng = np.random.default_rng(3)
+    X, truth, _ = scene(rng, 10)
+    one = cramer_rao_covariance(X, truth, CAM, 1.0)
+    for s in (0.5, 3.0):
+        np.testing.assert_allclose(cramer_rao_covariance(X, truth, CAM, s), s**2 * one,
+                                   rtol=1e-12)  # fmt: skip
+    behind = np.vstack([X, truth.inverse().transform(np.array([[0.0, 0.0, -1.0]]))])
+    bad = cramer_rao_covariance(behind, truth, CAM, 1.0)
+    assert bad.shape == (6, 6) and np.isnan(bad).all()
+
+
+def test_the_noise_estimate_divides_the_cost_by_the_degrees_of_freedom():
+    """Without robust weights s^2 = sum r^2 / (2n - 6) over the pixel residuals at the
+    solution (written out here); a known pixel sigma replaces it and scales the covariance
+    by its square."""
+    rng = np.random.default_rng(8)
+    X, truth, ref = scene(rng, 9)
+    u = CAM.project(X, truth) + rng.normal(scale=0.7, size=(9, 2))
+    est = solve_pose(X, u, CAM, ref, refine=RefineOptions(robust="none"))
+    r = CAM.project(X, est.pose) - u
+    assert est.sigma_px**2 == pytest.approx(np.sum(r**2) / (2 * 9 - 6), rel=1e-6)
+    for s in (1.0, 3.0):
+        known = solve_pose(X, u, CAM, ref, refine=RefineOptions(robust="none", pixel_sigma=s))
+        assert known.sigma_px == s
+        np.testing.assert_allclose(known.covariance, est.covariance * s**2 / est.sigma_px**2,
+                                   rtol=1e-9)  # fmt: skip
+
+
+def test_a_solution_behind_the_camera_or_on_two_inliers_is_a_sound_failure():
+    """The checks at the solution (`_finish`): every point must be in front, at least 3 must
+    carry the pose; the failure keeps the count, method and iterations."""
+    from mirage_cli.solver import _finish, _Problem
+
+    rng = np.random.default_rng(4)
+    X, truth, _ = scene(rng, 6)
+    Xc = truth.transform(X)
+    prob = _Problem(X, Xc[:, :2] / Xc[:, 2:], CAM.fx, CAM.fy)
+    res = {"R": truth.R, "t": truth.t, "iterations": 7, "wt": np.ones(6),
+           "r2": prob.point_r2(truth.R, truth.t), "H": np.eye(6)}  # fmt: skip
+    behind = {**res, "t": truth.t - [0.0, 0.0, 10.0]}
+    two = {**res, "wt": np.array([1.0, 1.0, 0, 0, 0, 0])}
+    singular = "singular system (degenerate point configuration)"
+    for r, reason in ((behind, "points behind the camera at the solution"),
+                      (two, "fewer than 3 inliers"), ({**res, "H": np.zeros((6, 6))}, singular),
+                      ({**res, "H": np.full((6, 6), np.nan)}, singular)):  # fmt: skip
+        est = _finish(prob, r, 6, np.ones(6, bool), "m", None, 1.0)
+        assert not est.success and est.pose is None and est.reason == reason
+        assert est.iterations == 7 and est.method == "m"
+        assert len(est.inliers) == 6 and not est.inliers.any()
+    ok = _finish(prob, res, 6, np.ones(6, bool), "m", None, 1.0)
+    assert ok.success and ok.reason == "" and ok.iterations == 7 and ok.method == "m"
+    # three points: no redundancy to estimate the noise, the default sigma is used
+    three = {**res, "wt": np.array([1.0, 1.0, 1.0, 0, 0, 0])}
+    est = _finish(prob, three, 6, np.ones(6, bool), "m", None, 3.0)
+    assert est.success and est.sigma_px == 3.0
+    np.testing.assert_allclose(est.covariance, np.eye(6) * 9.0, rtol=1e-12)  # H^-1 s^2
 
 
 def test_covariance_three_points_uses_prior_sigma():
@@ -354,29 +421,6 @@ def test_opencv_methods_fail_soundly_on_few_points():
     for m in ("epnp", "iterative", "ap3p"):
         est = solve_pose(X, u, CAM, None, method=m)
         assert not est.success and est.pose is None and est.reason
-
-
-# --- speed --------------------------------------------------------------------------------
-
-
-def test_speed_against_sqpnp():
-    """Mirage-S at n = 100 within 3x a bare cv2.solvePnP(SQPnP) call; the two are timed
-    interleaved so machine load hits both alike."""
-    rng = np.random.default_rng(60)
-    X, truth, ref = scene(rng, 100)
-    u = CAM.project(X, truth) + rng.normal(size=(100, 2))
-    X, u = np.ascontiguousarray(X), np.ascontiguousarray(u)
-    solve_pose(X, u, CAM, ref)  # compiled-kernel warm-up
-    ours, cv = [], []
-    for _ in range(300):
-        t0 = time.perf_counter()
-        solve_pose(X, u, CAM, ref)
-        t1 = time.perf_counter()
-        cv2.solvePnP(X, u, CAM.K, CAM.dist, flags=cv2.SOLVEPNP_SQPNP)
-        cv.append(time.perf_counter() - t1)
-        ours.append(t1 - t0)
-    ratio = np.median(ours) / np.median(cv)
-    assert ratio < 3.0, ratio
 
 
 # --- sound failure ------------------------------------------------------------------------

@@ -1,5 +1,7 @@
 """The synthetic scene generator: exact geometry, determinism, and the committed sample data."""
 
+import math
+
 import cv2
 import numpy as np
 import pandas as pd
@@ -59,7 +61,11 @@ def test_renderer_projection_accuracy(scene):
 def test_surface_distance(scene):
     pts = landmark_surface_samples(0.05)
     assert np.max(landmark_surface_distance(pts)) < 1e-9
-    assert np.allclose(landmark_surface_distance([[0, 0, 1.0]]), 1.0 - 0.62 + 0.0, atol=0.2)
+    # above the cylinder's top (z 0.62, radius 0.09 about (0.15, 0.06)): the nearest point
+    # is its rim, 0.0716 m out and 0.38 m down (the upper box's top, 0.52, is further)
+    rim = math.hypot(math.hypot(0.15, 0.06) - 0.09, 1.0 - 0.62)
+    assert landmark_surface_distance([[0, 0, 1.0]])[0] == pytest.approx(rim, abs=1e-12)
+    assert landmark_surface_distance([[-0.1, 0, 0.6]])[0] == pytest.approx(0.6 - 0.52, abs=1e-12)
     assert np.isclose(landmark_surface_distance([[1.30, 0, 0.1]])[0], 1.0)
     assert len(scene.markers) >= 20
 

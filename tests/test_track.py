@@ -45,6 +45,22 @@ def orbit_run(sample_model, tmp_path_factory):
     return csv, out, p
 
 
+# Accuracy limits come from measured figures (the sample orbit, SIFT, at dc25f7f: position
+# error median / p95 / max 1.47 / 3.10 / 5.37 mm, rotation 0.058 / 0.128 / 0.200 deg) with a
+# stated margin: 1.3x on the median and p95, 1.5x on the max (one frame). A change that
+# costs a third of the accuracy fails; the old limits (0.3% of range, about 4.9 mm median,
+# and 10 cm / 5 deg for a wrong pose) let a 3x loss through.
+MARGIN, MAX_MARGIN = 1.3, 1.5
+
+
+def assert_accuracy(pos_m, rot_deg, pos_mm, rot):
+    """Errors within the measured (median, p95, max) figures times the margins."""
+    for err, measured, unit in ((np.asarray(pos_m) * 1000, pos_mm, "mm"), (rot_deg, rot, "deg")):
+        got = (np.median(err), np.percentile(err, 95), np.max(err))
+        limit = (measured[0] * MARGIN, measured[1] * MARGIN, measured[2] * MAX_MARGIN)
+        assert all(g <= lim for g, lim in zip(got, limit, strict=True)), (unit, got, limit)
+
+
 def errors(est, truth):
     ok = est["status"] == "ok"
     pos, rot, rel = [], [], []
@@ -65,10 +81,9 @@ def test_orbit_accuracy_and_lost_frames(orbit_run):
     ok = (est["status"] == "ok").to_numpy()
     assert ok[vis >= IN_VIEW].mean() >= 0.99
     assert not ok[vis == 0].any()  # every frame without the landmark is lost
-    pos, rot, rel = errors(est, truth)
-    assert np.sum((pos > 0.10) | (rot > 5.0)) == 0  # no wrong poses
-    assert np.median(rel) <= 0.003
-    assert np.median(rot) <= 0.2
+    pos, rot, _ = errors(est, truth)
+    assert len(pos) == 492  # every frame with the landmark in view (measured)
+    assert_accuracy(pos, rot, (1.47, 3.10, 5.37), (0.058, 0.128, 0.200))
     # re-acquired within 5 frames after the landmark is back in view
     back = np.flatnonzero(vis == 0)[-1] + 1
     while vis[back] < IN_VIEW:
@@ -80,7 +95,8 @@ def test_orbit_accuracy_and_lost_frames(orbit_run):
     # diagnostics are present and sane
     assert (est.loc[ok, "inliers"] >= 15).all()
     assert (est.loc[ok, "sigma_pos_m"] > 0).all()
-    assert "tracked" not in proc.stderr.lower() or proc.returncode == 0
+    # the summary counts what the CSV holds
+    assert f"track: {len(est)} frames, {ok.sum()} ok" in proc.stdout, proc.stdout
 
 
 def test_tum_trajectory(orbit_run):

@@ -22,7 +22,9 @@ from mirage_cli.trajectory import FrameRecord, Status
 try:  # through mirage, so that rerun starts as it does in the CLI (its Rust log quiet)
     rr = viewer.rerun_module()
 except InputError:
-    pytest.skip("the [viz] extra (rerun-sdk) is not installed", allow_module_level=True)
+    rr = None
+# only the tests that write or read a recording need rerun; the others run without it
+needs_rerun = pytest.mark.skipif(rr is None, reason="the [viz] extra (rerun-sdk) is not installed")
 
 VIDEO = SAMPLE / "orbit.mp4"
 N_FRAMES = 15
@@ -73,6 +75,7 @@ def tracked(sample_model, tmp_path_factory):
     return pd.read_csv(d / "poses.csv"), read_rrd(d / "out.rrd"), d
 
 
+@needs_rerun
 def test_track_recording_holds_every_frame_as_the_csv_says(tracked, sample_model):
     csv, ent, _ = tracked
     assert len(csv) == N_FRAMES and (csv.status == "ok").sum() >= N_FRAMES - 2
@@ -115,6 +118,7 @@ def test_track_recording_holds_every_frame_as_the_csv_says(tracked, sample_model
     assert len(kfs) == len(model.keyframes)
 
 
+@needs_rerun
 def test_inspect_recording_holds_the_model(sample_model, tmp_path, capsys):
     out = tmp_path / "model.rrd"
     p = mirage_here("inspect", sample_model, "--rerun", out, capsys=capsys)
@@ -193,6 +197,7 @@ def track_to(model, csv, rrd):
     track_cli.track_to_files(src, tracker, csv, rerun=rrd)
 
 
+@needs_rerun
 def test_interrupt_keeps_the_recording_of_finished_frames(sample_model, tmp_path, monkeypatch):
     """track's output loop fed five records (one lost) and then Ctrl-C: the recording is
     in place with exactly those frames; the path breaks at the lost frame and its blocks
@@ -242,6 +247,7 @@ def small_disk(tmp_path):
         yield mnt
 
 
+@needs_rerun
 def test_full_disk_is_one_line_and_leaves_nothing(sample_model, small_disk, capsys):
     """rerun's file writer does not survive a full disk (closing the recording can hang):
     mirage stops first, with one line naming the file, exit 1 and no temporary file."""
@@ -253,6 +259,7 @@ def test_full_disk_is_one_line_and_leaves_nothing(sample_model, small_disk, caps
         assert not list(small_disk.iterdir())
 
 
+@needs_rerun
 def test_disk_filling_up_stops_the_recording_cleanly(sample_model, tmp_path, monkeypatch):
     """Room runs out after two frames: the run stops there with one line, the recording
     is closed (no hang) and removed, like the pose CSV on any error."""
