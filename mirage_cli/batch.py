@@ -156,7 +156,42 @@ def load_campaign(path, output: str | os.PathLike | None = None) -> Campaign:
             )
         seen[fl.name] = w.split(": ", 1)[1]
         result.append(fl)
-    return Campaign(src, out, result)
+    campaign = Campaign(src, out, result)
+    check_outputs(campaign)
+    return campaign
+
+
+def flight_inputs(flight: Flight) -> dict:
+    """Every file, folder or glob a flight reads, by its campaign key."""
+    transform = flight.truth_transform
+    return {
+        "video": flight.video,
+        "model": flight.model,
+        "path": flight.path,
+        "camera": flight.camera,
+        "truth": flight.truth,
+        "truth_transform": transform if transform and os.path.exists(transform) else None,
+    }
+
+
+def check_outputs(campaign: Campaign) -> None:
+    """Before anything runs: no file a flight writes (OUT/<name>/poses.csv, ...) nor the
+    campaign's table and plot may be, or be inside, any flight's input or the campaign
+    file (a truth CSV or a keyframe folder's poses.csv in the output folder would be
+    overwritten, then 'matched' against itself)."""
+    inputs = {"campaign file": str(campaign.source)}
+    for f in campaign.flights:
+        inputs |= {f"flight '{f.name}' {k}": v for k, v in flight_inputs(f).items() if v}
+    outputs = {
+        "output": [str(campaign.output / n) for n in (CAMPAIGN_CSV, CAMPAIGN_PNG)],
+    }
+    for f in campaign.flights:
+        d = campaign.output / f.name
+        outputs[f"flight '{f.name}' output"] = [str(d / n) for n in (*OUTPUTS, MARKER)]
+    try:
+        fileio.refuse_overwrite(outputs, inputs)
+    except InputError as e:
+        raise InputError(f"campaign {campaign.source}: {e}") from None
 
 
 def _natural(p: str):

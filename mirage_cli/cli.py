@@ -144,6 +144,9 @@ def cli(ctx, config_path, verbose, quiet, debug):
     _debug["on"] = debug
     ui.setup(verbose, quiet)
     raw, src = read_config(config_path)
+    # the config is an input of every command: no output may overwrite it
+    fileio.GUARDED_INPUTS.clear()
+    fileio.GUARDED_INPUTS["--config"] = str(src) if src is not None else None
     ctx.default_map = check_config(raw, cli.commands, src) if src is not None else {}
     ctx.obj = {"config": ctx.default_map, "config_path": src}
 

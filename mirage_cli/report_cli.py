@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 import numpy as np
 import yaml
@@ -124,7 +126,15 @@ def report_cmd(
     """
     refuse_overwrite(
         {"-o": output, "--summary": summary, "--plot": plot},
-        {"POSES": poses, "--path": path, "--truth": truth},
+        {
+            "POSES": poses,
+            "--path": path,
+            "--truth": truth,
+            # a file holding the transform (a literal '0 0 0 1 0 0 0' names no file)
+            "--truth-transform": truth_transform
+            if truth_transform and os.path.exists(os.path.expanduser(truth_transform))
+            else None,
+        },
     )
     for out in (output, summary, plot):
         if out:

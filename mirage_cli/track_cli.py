@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from .cli_options import (
     shown,
     topic_option,
 )
-from .errors import InputError, NothingFound, OutputError
+from .errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from .fileio import (
     atomic_path,
     check_writable,
@@ -261,13 +262,16 @@ def _track(
 
         def emit(records):
             for rec in records:
-                for w in writers:
-                    w.write(rec)
-                if rrd is not None:  # before the overlay, which takes the image
-                    rrd.write(rec)
-                if ov is not None:
-                    ov.write(rec)
-                done.append((rec.status, rec.inliers))
+                # a record goes to every output or to none: a signal waits until it is out
+                # (else the overlay could hold a frame fewer than the CSV)
+                with signals.deferred():
+                    for w in writers:
+                        w.write(rec)
+                    if rrd is not None:  # before the overlay, which takes the image
+                        rrd.write(rec)
+                    if ov is not None:
+                        ov.write(rec)
+                    done.append((rec.status, rec.inliers))
                 if len(done) % 10 == 0:
                     rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
                     bar.update(10, f"{rate:.0f} frames/s")
@@ -298,7 +302,13 @@ class _Overlay:
     def __init__(self, path, fps: float, camera, axis_m: float):
         # VideoWriter reports no write error: the video must read back with its frames (one
         # of slack: a signal can land between writing a frame and counting it)
-        self._path = atomic_path(path, verify=lambda p: video_frames_written(p) >= self.n - 1)
+        # (no suffix, e.g. /dev/null: an .mp4 temporary file, so that OpenCV picks a container)
+        self._path = atomic_path(
+            path,
+            suffix=Path(path).suffix or ".mp4",
+            verify=lambda p: video_frames_written(p) >= self.n - 1,
+        )
+        self.path = path
         self.fps, self.camera, self.axis_m = fps, camera, axis_m
         self.writer, self.n = None, 0
 
@@ -318,7 +328,7 @@ class _Overlay:
                 (img.shape[1], img.shape[0]),
             )
             if not self.writer.isOpened():
-                raise OutputError("cannot write the overlay video (mp4v)")
+                raise overlay_failure(self.path, self.tmp)
         self.writer.write(draw_overlay(img, rec, self.camera, self.axis_m))
         self.n += 1
 
@@ -326,6 +336,16 @@ class _Overlay:
         if self.writer is not None:
             self.writer.release()
         return self._path.__exit__(*exc)
+
+
+def overlay_failure(path, tmp) -> OutputError | EnvironmentFailure:
+    """Why the overlay video did not open, naming the file: a full disk is the machine's
+    failure (exit 1), anything else the output's (exit 2)."""
+    with contextlib.suppress(OSError):
+        fs = os.statvfs(Path(tmp).parent)
+        if fs.f_bavail * fs.f_frsize < (1 << 20):
+            return EnvironmentFailure(f"cannot write {path}: no space left on device")
+    return OutputError(f"cannot write the overlay video {path} (OpenCV's mp4v writer did not open)")
 
 
 def _summary(stats: dict, out: Path) -> None:

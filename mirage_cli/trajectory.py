@@ -26,6 +26,7 @@ from .errors import InputError
 from .fileio import (
     check_writable,
     forget_temp,
+    is_special,
     mkstemp_near,
     read_csv,
     require_file,
@@ -196,9 +197,16 @@ class TrajectoryWriter:
         self.format = FORMATS[fmt]
         self.extra = list(extra_columns)
         self.rows = 0
-        fd, self.tmp = mkstemp_near(self.path, ".partial")
-        os.chmod(self.tmp, 0o644)
-        self._f = os.fdopen(fd, "w", newline="")
+        if is_special(self.path):  # /dev/null, a FIFO, /dev/stdout: rows go straight there
+            self.tmp = None
+            try:
+                self._f = open(self.path, "w", newline="")  # noqa: SIM115
+            except OSError as e:
+                raise write_failure(self.path, e) from None
+        else:
+            fd, self.tmp = mkstemp_near(self.path, ".partial")
+            os.chmod(self.tmp, 0o644)
+            self._f = os.fdopen(fd, "w", newline="")
         self._guard(lambda: (self._f.write(self.format.header(self.extra)), self._f.flush()))
 
     def _guard(self, fn) -> None:
@@ -218,6 +226,8 @@ class TrajectoryWriter:
     def _discard(self) -> None:
         with contextlib.suppress(OSError):
             self._f.close()
+        if self.tmp is None:
+            return
         with contextlib.suppress(OSError):
             self.tmp.unlink()
         forget_temp(self.tmp)
@@ -225,7 +235,7 @@ class TrajectoryWriter:
     def close(self, keep: bool = True) -> None:
         if self._f.closed:
             return
-        if not keep or self.rows == 0:
+        if not keep or self.rows == 0 or self.tmp is None:
             self._discard()
             return
 

@@ -482,6 +482,75 @@ CASES = [
 ]
 
 
+# --- issue 30: outputs that hide inside inputs (folders, globs, other options, batch) -------
+FR = ["track", "frames", "--model", "{M}"]
+CAL_GLOB = ["calibrate", "frames/*.jpg", "--board", "9x6", "--square", "0.025"]
+CASES += [
+    C("track-out-is-image-in-folder", *FR, "-o", "frames/right02.jpg", needs=["frames"],
+      contains="same file as VIDEO frames"),
+    C("track-out-inside-image-folder", *FR, "-o", "frames/poses.csv", needs=["frames"],
+      contains="inside VIDEO frames"),
+    C("track-tum-inside-folder-via-dotdot", *FR, "--tum", "frames/../frames/p.tum",
+      needs=["frames"], contains="inside VIDEO"),
+    C("track-out-is-hard-link-to-image", *FR, "-o", "hard.jpg", needs=["frames", "hardlink"],
+      contains="same file"),
+    C("track-out-inside-bag", "track", "bag", "--model", "{M}", "-o", "bag/poses.csv",
+      needs=["bag"], contains="inside VIDEO bag"),
+    C("track-out-in-symlinked-folder", *FR, "-o", "frames_link/poses.csv",
+      needs=["frames", "symlink"], contains="inside VIDEO frames"),
+    C("cal-report-is-glob-member", *CAL_GLOB, "--report", "frames/right01.jpg",
+      needs=["frames"], contains="same file"),
+    C("cal-report-matches-glob", *CAL_GLOB, "--report", "frames/calib_000.jpg",
+      needs=["frames"], contains="matches INPUT frames/*.jpg"),
+    C("cal-out-inside-folder", "calibrate", "frames", "--board", "9x6", "--square", "0.025",
+      "-o", "frames/camera.yaml", needs=["frames"], contains="inside INPUT frames"),
+    C("bm-out-inside-keyframes", "build-model", "frames", "--camera", "{CAM}", "--poses",
+      "{KP}", "-o", "frames/m.mirage", needs=["frames"], contains="inside INPUT frames"),
+    C("report-out-is-transform-file", *REPORT[:-1], "tt.txt", "--truth", "{TRUTH}",
+      "--truth-transform", "tt.txt", needs=["transform"], contains="--truth-transform"),
+    C("report-summary-is-transform-file", *REPORT, "--truth", "{TRUTH}",
+      "--truth-transform", "tt.txt", "--summary", "tt.txt", needs=["transform"],
+      contains="same file"),
+    C("report-out-is-config", "--config", "cfg.yaml", *REPORT[:-1], "cfg.yaml",
+      needs=["cfg"], contains="--config"),
+    C("batch-out-is-flight-truth", "batch", "camp.yaml", needs=["campaign"],
+      contains="is the same file as flight 'fl' truth"),
+    C("batch-out-inside-flight-frames", "batch", "camp2.yaml", needs=["frames", "campaign"],
+      contains="inside flight 'frames' video"),
+]  # fmt: skip
+
+
+def _setup(needs: list, world: dict) -> None:
+    """The extra files some cases need, all in the case's own folder."""
+    tmp = world["TMP"]
+    if "frames" in needs:  # an image folder: a copy, never the repository's own files
+        (tmp / "frames").mkdir()
+        for f in sorted(CAL.glob("*.jpg"))[:3]:
+            shutil.copyfile(f, tmp / "frames" / f.name)
+    if "hardlink" in needs:
+        os.link(tmp / "frames" / "right02.jpg", tmp / "hard.jpg")
+    if "symlink" in needs:
+        (tmp / "frames_link").symlink_to(tmp / "frames")
+    if "bag" in needs:  # a ROS 2 bag is a folder holding metadata.yaml
+        (tmp / "bag").mkdir()
+        (tmp / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    if "transform" in needs:
+        (tmp / "tt.txt").write_text("0 0 0 1 0 0 0\n")
+    if "cfg" in needs:
+        (tmp / "cfg.yaml").write_text("report:\n  t-max-diff: 0.02\n")
+    if "campaign" in needs:
+        (tmp / "camp_out" / "fl").mkdir(parents=True)
+        shutil.copyfile(world["TRUTH"], tmp / "camp_out" / "fl" / "poses.csv")
+        (tmp / "camp.yaml").write_text(
+            f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: camp_out}}\n"
+            f"flights:\n  - {{video: {world['V']}, name: fl, truth: camp_out/fl/poses.csv}}\n"
+        )
+        (tmp / "camp2.yaml").write_text(
+            f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: frames}}\n"
+            "flights:\n  - {video: frames}\n"
+        )
+
+
 def _fill(args: list, p: dict) -> list[str]:
     return [str(a).format(**p) for a in args]
 
@@ -552,6 +621,7 @@ def test_catalogue(case: Case, world, capsys, monkeypatch):
     if "synth_cam" in case.needs:
         (tmp / "so").mkdir()
         shutil.copyfile(world["CAM"], tmp / "so" / "camera_truth.yaml")
+    _setup(case.needs, world)
     if "config" in case.needs:
         (tmp / "mirage.yaml").write_text(f"track:\n  model: {world['M']}\n  max-rmse: .nan\n")
     watched = [tmp, world["M"], world["CAM"], world["KP"], world["TRUTH"], world["PATH"]]
@@ -592,6 +662,7 @@ FULL_DISK = [
     ("track", [*TRACK[:-1], "{FULL}/out.csv", "--end", "2"]),
     ("track-tum", [*TRACK[:-1], "new.csv", "--end", "2", "--tum", "{FULL}/out.tum"]),
     ("inspect-plot", ["inspect", "{M}", "--plot", "{FULL}/out.png"]),
+    ("track-overlay", [*TRACK[:-1], "new.csv", "--end", "2", "--overlay", "{FULL}/out.mp4"]),
     ("synth-camera", ["synth", "{FULL}/s", "--only", "calibration", "--calib-views", "1"]),
 ]
 
@@ -772,3 +843,103 @@ def test_sigterm_as_a_zip_entry_opens_is_the_interrupt_not_a_zip_error(world, mo
     assert len(calls) == 3
     assert out.read_text() == PROTECTED["out.mirage"]
     assert not _hidden(world["TMP"]), _hidden(world["TMP"])
+
+
+# --- issue 30: outputs that are not regular files are written through, never replaced -----
+def _null_node(path: Path) -> Path:
+    """A private character device like /dev/null (major 1, minor 3) in the test's folder: a
+    regression replaces this node, never the machine's /dev/null."""
+    import stat
+
+    try:
+        os.mknod(path, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except OSError as e:
+        pytest.skip(f"creating a device node needs root (CAP_MKNOD): {e.strerror}")
+    return path
+
+
+def _is_null_device(path: Path) -> bool:
+    import stat
+
+    st = os.lstat(path)
+    return stat.S_ISCHR(st.st_mode) and st.st_rdev == os.makedev(1, 3)
+
+
+def _fifo_reader(path: Path):
+    """Open a FIFO for reading in a thread (a writer's open blocks until then); returns a
+    function giving everything read."""
+    import threading
+
+    os.mkfifo(path)
+    got: list[bytes] = []
+
+    def read():
+        with open(path, "rb") as f:
+            got.append(f.read())
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+
+    def result() -> bytes:
+        t.join(60)
+        return b"".join(got)
+
+    return result
+
+
+def test_report_writes_through_a_device_and_a_fifo(world, capsys, monkeypatch):
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    nul = _null_node(tmp / "nul")
+    fifo = _fifo_reader(tmp / "report.fifo")
+    args = _fill(REPORT[:-1], world) + ["report.fifo", "--summary", "nul", "--plot", "nul"]
+    code, err, warned = run_in_process(args, capsys)
+    assert code == 0, err
+    assert fifo().startswith(b"frame,"), "the FIFO's reader got the report"
+    assert _is_null_device(nul), "the device node was replaced"
+    assert Path(tmp / "report.fifo").is_fifo()
+    assert not _hidden(tmp) and not warned, warned
+
+
+def test_track_writes_through_a_device_and_a_fifo(world, capsys, monkeypatch):
+    """The row-by-row pose writer and the overlay video (no suffix: an .mp4 is made and
+    copied through) write into the special files; nothing replaces them."""
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    nul = _null_node(tmp / "nul")
+    fifo = _fifo_reader(tmp / "poses.fifo")
+    args = [*_fill(TRACK[:-1], world), "nul", "--end", "3", "--tum", "poses.fifo"]
+    code, err, _ = run_in_process([*args, "--overlay", "nul"], capsys)
+    assert code == 0, err
+    rows = [ln for ln in fifo().decode().splitlines() if not ln.startswith("#")]
+    assert len(rows) == 3, "three TUM rows through the FIFO"
+    assert _is_null_device(nul) and Path(tmp / "poses.fifo").is_fifo()
+    assert not _hidden(tmp)
+
+
+def test_stdout_link_output_writes_standard_output(world):
+    """`-o /dev/stdout` (here a private link to /proc/self/fd/1, the same thing): the CSV
+    goes to standard output and the link stays a link."""
+    tmp = world["TMP"]
+    (tmp / "stdout").symlink_to("/proc/self/fd/1")
+    p = _popen(["-q", *_fill(REPORT[:-1], world), "stdout"], tmp, stdout=subprocess.PIPE)
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 0, err
+    assert out.startswith("frame,") and len(out.splitlines()) > 100
+    assert (tmp / "stdout").is_symlink()
+    assert not _hidden(tmp)
+
+
+def test_symlink_output_writes_its_target(world, capsys, monkeypatch):
+    """A symlinked output replaces the file it points to (atomically, in the target's
+    folder); the link stays a link."""
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    (tmp / "elsewhere").mkdir()
+    (tmp / "elsewhere" / "r.csv").write_text("old\n")
+    (tmp / "link.csv").symlink_to(tmp / "elsewhere" / "r.csv")
+    code, err, _ = run_in_process([*_fill(REPORT[:-1], world), "link.csv"], capsys)
+    assert code == 0, err
+    assert (tmp / "link.csv").is_symlink()
+    assert (tmp / "elsewhere" / "r.csv").read_text().startswith("frame,")
+    assert not _hidden(tmp) and not _hidden(tmp / "elsewhere")
