@@ -670,6 +670,9 @@ def campaign_figure(results: list[FlightResult]):
     """Per flight: tracked %, then the median and p95 of the path error and (with truth)
     of the position and rotation errors, each on its own axis (they differ by orders of
     magnitude); flights that did not finish are marked."""
+    from .plotting import import_matplotlib
+
+    import_matplotlib()
     from matplotlib.figure import Figure
 
     panels = [("path error (m)", "path_error_median_m", "path_error_p95_m", 1.0)]

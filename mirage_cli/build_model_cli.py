@@ -6,7 +6,7 @@ import time
 
 import click
 
-from . import ui
+from . import signals, ui
 from .boards import load_board
 from .build_model import (
     ROI,
@@ -166,6 +166,7 @@ def build_model_cmd(
         "poses": poses_path,
         "board": board.to_yaml() if board else None,
     }
+    signals.check()  # a signal swallowed by compiled code must not replace the model
     save_model(res, output, source, t0)
 
 

@@ -164,6 +164,8 @@ def main(argv: list[str] | None = None) -> None:
             _debug["on"] = True
         _check_std_streams(quiet="-q" in argv or "--quiet" in argv)
         code = _invoke(argv)
+        if code == 0:
+            signals.check()  # a swallowed signal still ends the run as interrupted
     except BaseException as e:  # noqa: BLE001 - every outcome becomes one line and a code
         code = _report(e)
     try:
@@ -202,7 +204,18 @@ def _say(line: str) -> None:
 def _describe(e: BaseException) -> int:
     if isinstance(e, SystemExit):
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    if isinstance(e, MemoryError):
+        _say(
+            "mirage: error: out of memory (an input or option asks for more than this machine "
+            "has: check image sizes and counts)"
+        )
+        return 1
     if isinstance(e, KeyboardInterrupt | click.exceptions.Abort):
+        signals.seen()
+        # a signal that cut a library's object in half (llvmlite while numba loads) makes
+        # its finaliser fail at exit: "Exception ignored in ...", a second line; the one
+        # line below says what happened
+        sys.unraisablehook = lambda unraisable: None
         cause = e.__cause__ if isinstance(e, click.exceptions.Abort) else e
         _say(signals.message(cause or e))
         return signals.exit_code(cause or e)

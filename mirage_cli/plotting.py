@@ -28,7 +28,35 @@ if TYPE_CHECKING:
     from .trajectory import FrameRecord
 
 
+def import_matplotlib():
+    """matplotlib, imported once. It validates $MPLBACKEND on import (a bad value is a
+    ValueError); mirage draws PNGs with Agg and never uses a backend, so a bad value is a
+    warning and is dropped for this process."""
+    import os
+    import sys
+
+    if "matplotlib" in sys.modules:
+        return sys.modules["matplotlib"]
+    try:
+        import matplotlib
+    except ValueError as e:
+        backend = os.environ.pop("MPLBACKEND", None)
+        if backend is None or "backend" not in str(e).lower():
+            raise
+        from . import ui
+
+        ui.log.warning(
+            f"MPLBACKEND={backend!r} is not a matplotlib backend; ignored (mirage writes "
+            "PNGs with Agg)"
+        )
+        for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+            del sys.modules[name]
+        import matplotlib
+    return matplotlib
+
+
 def _figure(**kw) -> Figure:
+    import_matplotlib()
     from matplotlib.figure import Figure
 
     return Figure(**kw)
@@ -157,7 +185,7 @@ CALIBRATION_DPI = 110
 
 def calibration_figure(c: Calibration) -> Figure:
     """Corner coverage over the image (rejected views as red crosses) and per-view RMS."""
-    import matplotlib
+    matplotlib = import_matplotlib()
     from matplotlib.patches import Rectangle
 
     w, h = c.image_size

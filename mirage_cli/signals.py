@@ -13,7 +13,7 @@ import contextlib
 import signal
 
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
-_state = {"deferring": 0, "pending": None}
+_state = {"deferring": 0, "pending": None, "raised": None}
 
 
 class Terminated(KeyboardInterrupt):
@@ -30,11 +30,29 @@ def _handler(signum, frame):
     if _state["deferring"]:
         _state["pending"] = _state["pending"] or signum
         return
+    _state["raised"] = signum  # until `check` or the CLI's top level sees it
     raise _exception(signum)
+
+
+def check() -> None:
+    """Raise a signal whose exception never surfaced: a compiled-code callback (numba's
+    cache, llvmlite through ctypes) prints and drops an exception raised inside it, and
+    the run would go on to finish and exit 0. Called where no interrupt can have been
+    handled yet in this run (after the compiled code loads, before each frame), so a
+    signal seen here was swallowed."""
+    signum, _state["raised"] = _state["raised"], None
+    if signum:
+        raise _exception(signum)
+
+
+def seen() -> None:
+    """The interrupt reached the top level (or a caller that handles it): nothing pending."""
+    _state["raised"] = None
 
 
 def install() -> None:
     """Both signals raise; safe to call more than once (main thread only)."""
+    _state.update(deferring=0, pending=None, raised=None)
     with contextlib.suppress(ValueError):  # not the main thread: leave the handlers alone
         signal.signal(signal.SIGINT, _handler)
         signal.signal(signal.SIGTERM, _handler)

@@ -28,6 +28,8 @@ from .render import Renderer, stable_rng
 from .trajectory import FrameRecord, Status, write_trajectory
 from .validate import BoundedInt, FiniteFloat, float_list
 
+MAX_SIDE = 8192  # px: an 8K frame; larger renders exhaust memory (rays per pixel)
+
 PARTS = ("calibration", "keyframes", "orbit")
 
 _worker: dict = {}
@@ -68,8 +70,12 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 @click.argument("outdir", type=FOLDER)
 @shown("--seed", type=BoundedInt(min=0), default=0, help="Random seed.")
 @camera_option("Camera YAML to render with (default: a 640x480 webcam with distortion).")
-@click.option("--width", type=BoundedInt(min=16), help="Image width (scales the camera).")
-@click.option("--height", type=BoundedInt(min=16), help="Image height.")
+@click.option(
+    "--width",
+    type=BoundedInt(min=16, max=MAX_SIDE),
+    help="Image width (scales the camera).",
+)
+@click.option("--height", type=BoundedInt(min=16, max=MAX_SIDE), help="Image height.")
 @shown(
     "--only",
     default=",".join(PARTS),
@@ -230,6 +236,11 @@ def synth_cmd(
     if width or height:
         w = width or round(cam.width * height / cam.height)
         h = height or round(cam.height * width / cam.width)
+        if max(w, h) > MAX_SIDE:
+            raise click.BadParameter(
+                f"the image would be {w}x{h}; at most {MAX_SIDE} px a side",
+                param_hint="'--width' / '--height'",
+            )
         cam = cam.scaled(w, h)
     if camera_path:
         refuse_overwrite({"OUTDIR": Path(outdir) / "camera_truth.yaml"}, {"--camera": camera_path})

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from . import signals
 from .camera import Camera
 from .features import detect, guided_match, make_detector, to_gray
 from .frames import Frame
@@ -829,6 +830,7 @@ def run(
         return rec
 
     for f in frames:
+        signals.check()  # a signal a compiled-code callback swallowed: the interrupt now
         gray = None
         if f.image is not None:
             gray = to_gray(f.image)

@@ -215,7 +215,11 @@ def track_to_files(
     on (exit 130 / 143)."""
     if not refine.cached_on_disk():
         ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
-    warm_up()  # compile or load it before the first frame's clock starts
+    # compile or load it before the first frame's clock starts; loading from the cache
+    # (under a second) runs numba's callbacks, which would swallow a signal: held meanwhile
+    with signals.deferred() if refine.cached_on_disk() else contextlib.nullcontext():
+        warm_up()
+    signals.check()
     runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
     points = tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2

@@ -513,6 +513,10 @@ CASES += [
       contains="same file"),
     C("report-out-is-config", "--config", "cfg.yaml", *REPORT[:-1], "cfg.yaml",
       needs=["cfg"], contains="--config"),
+    C("synth-width-absurd", *SYNTH, "--width", "1000000000", contains="--width"),
+    C("synth-height-makes-width-absurd", *SYNTH, "--height", "8000", contains="10667x8000"),
+    C("demo-out-inside-sample", "demo", "--sample-data", "sample", "--out", "sample/d",
+      needs=["sample_copy"], contains="inside --sample-data"),
     C("batch-out-is-flight-truth", "batch", "camp.yaml", needs=["campaign"],
       contains="is the same file as flight 'fl' truth"),
     C("batch-out-inside-flight-frames", "batch", "camp2.yaml", needs=["frames", "campaign"],
@@ -534,6 +538,13 @@ def _setup(needs: list, world: dict) -> None:
     if "bag" in needs:  # a ROS 2 bag is a folder holding metadata.yaml
         (tmp / "bag").mkdir()
         (tmp / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    if "sample_copy" in needs:  # the sample data's small files, in the case's folder
+        (tmp / "sample" / "keyframes").mkdir(parents=True)
+        for name in ("desired_path.yaml", "orbit_truth.csv", "camera_truth.yaml"):
+            shutil.copyfile(SAMPLE / name, tmp / "sample" / name)
+        shutil.copyfile(world["KP"], tmp / "sample" / "keyframes" / "poses.csv")
+        (tmp / "sample" / "orbit.mp4").write_bytes(b"")
+        (tmp / "sample" / "calibration").mkdir()
     if "transform" in needs:
         (tmp / "tt.txt").write_text("0 0 0 1 0 0 0\n")
     if "cfg" in needs:
@@ -943,3 +954,106 @@ def test_symlink_output_writes_its_target(world, capsys, monkeypatch):
     assert (tmp / "link.csv").is_symlink()
     assert (tmp / "elsewhere" / "r.csv").read_text().startswith("frame,")
     assert not _hidden(tmp) and not _hidden(tmp / "elsewhere")
+
+
+# --- issue 30: signals from the first instruction, never swallowed ------------------------
+def _catches_sigterm(pid: int) -> bool:
+    """Whether the process has its own SIGTERM handler yet (/proc's caught-signal mask)."""
+    with contextlib.suppress(OSError, StopIteration, ValueError):
+        status = Path(f"/proc/{pid}/status").read_text().splitlines()
+        mask = int(next(ln for ln in status if ln.startswith("SigCgt:")).split()[1], 16)
+        return bool(mask & (1 << (signal.SIGTERM - 1)))
+    return False
+
+
+def test_start_up_signals_are_never_swallowed(world):
+    """50 runs of the console script's entry point, each sent SIGINT or SIGTERM at a random
+    moment from the handlers' installation (before click, OpenCV and numba load) through
+    the compiled solver's cache load and the first frames: every one ends with its
+    signal's exit code and one line, and the previous output stays."""
+    import random
+
+    tmp = world["TMP"]
+    rng = random.Random(30)
+    entry = "from mirage_cli.__main__ import run; run()"  # what the `mirage` script runs
+    outcomes = []
+    for i in range(50):
+        sig = (signal.SIGINT, signal.SIGTERM)[i % 2]
+        p = subprocess.Popen(
+            [sys.executable, "-c", entry, *_fill(TRACK, world), "--end", "30"],
+            cwd=tmp,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        t0 = time.monotonic()
+        while not _catches_sigterm(p.pid) and time.monotonic() - t0 < 30 and p.poll() is None:
+            time.sleep(0.001)
+        time.sleep(rng.uniform(0, 1.2))
+        assert p.poll() is None, "the run ended before its signal"
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=120)
+        outcomes.append((sig, p.returncode, err))
+    swallowed = [(s, c, e) for s, c, e in outcomes if c != signals_code(s)]
+    assert not swallowed, swallowed[:3]
+    for sig, code, err in outcomes:
+        name = signal.Signals(sig).name
+        assert_contract(code, err, signals_code(sig), prefix=f"mirage: interrupted ({name})")
+    assert (tmp / "out.csv").read_text() == PROTECTED["out.csv"]
+    assert not _hidden(tmp), _hidden(tmp)
+
+
+def signals_code(sig) -> int:
+    return {signal.SIGINT: 130, signal.SIGTERM: 143}[sig]
+
+
+def test_a_swallowed_signal_still_interrupts(monkeypatch):
+    """A signal whose exception a compiled-code callback dropped is raised at the next
+    check (before the next frame, after the kernels load, before `main` says 0)."""
+    from mirage_cli import signals
+
+    with own_signal_handlers():
+        signals.install()
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+        except signals.Terminated:
+            pass  # what the callback does: print it, drop it
+        with pytest.raises(signals.Terminated):
+            signals.check()
+        signals.check()  # raised once only
+
+
+def test_console_script_installs_the_handlers_before_importing_the_program():
+    """The `mirage` script's entry point is the light __main__.run (signals first), not
+    cli.main (whose module imports click and the config reader before any handler)."""
+    text = (ROOT / "pyproject.toml").read_text()
+    assert re.search(r'^mirage = "mirage_cli\.__main__:run"$', text, re.M), "entry point"
+    code = "import sys, mirage_cli.__main__; print(sorted(m for m in sys.modules if m.startswith(('click', 'cv2', 'numba', 'numpy'))))"  # noqa: E501
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_bad_mplbackend_is_a_warning_not_an_unexpected_error(world):
+    """matplotlib refuses an unknown $MPLBACKEND on import; mirage draws with Agg and
+    never uses a backend: one warning, the plot written, exit 0."""
+    tmp = world["TMP"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "bogus"}
+    args = [*_fill(REPORT[:-1], world), "new.csv", "--plot", "new.png"]
+    p = subprocess.run([sys.executable, "-m", "mirage_cli", *args], cwd=tmp, env=env,
+                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert p.stderr.strip().startswith("mirage: warning: MPLBACKEND='bogus'"), p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert (tmp / "new.png").stat().st_size > 0
+
+
+def test_out_of_memory_is_one_line_exit_1(capsys, monkeypatch):
+    from mirage_cli import synth_cli
+
+    def no_memory(*a, **k):
+        raise MemoryError()
+
+    monkeypatch.setattr(synth_cli.synth, "default_camera", no_memory)
+    code, err, _ = run_in_process(["synth", "x"], capsys)
+    assert_contract(code, err, 1, "out of memory")
