@@ -255,6 +255,18 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
     s, e = when["start"], when["end"]
     if s is not None and e is not None and s.seconds == e.seconds and e.value <= s.value:
         raise InputError(f"{where}: 'end' {e} must come after 'start' {s}")
+    if s is not None and e is not None and s.seconds != e.seconds:  # frames and seconds
+        from .frames import FrameSource
+
+        try:
+            fps = FrameSource([vpath]).fps
+        except MirageError:
+            fps = None  # an unreadable video fails as that flight's failure, later
+        if fps is not None and e.frame(fps) <= s.frame(fps):
+            raise InputError(
+                f"{where}: 'end' {e} (frame {e.frame(fps)}) must come after 'start' {s} "
+                f"(frame {s.frame(fps)})"
+            )
     name = str(get("name", what="name") or _default_name(vpath))
     if name.startswith(".") or "/" in name or "\\" in name or name in (CAMPAIGN_CSV, CAMPAIGN_PNG):
         raise InputError(f"{where}: name '{name}' must be a plain folder name")

@@ -91,7 +91,12 @@ class _Stages:
     help="One keyframe per this much azimuth (per elevation band).",
 )
 @shown("--detector", type=click.Choice(DETECTORS), default=DetectorSettings.name)
-@shown("--nfeatures", type=BoundedInt(min=50), default=DetectorSettings.nfeatures)
+@shown(
+    "--nfeatures",
+    type=BoundedInt(min=50, max=1_000_000),
+    default=DetectorSettings.nfeatures,
+    help="Features detected per view.",
+)
 @shown(
     "--roi",
     default=default_of(BuildSettings, "roi").kind,

@@ -238,11 +238,17 @@ class Camera:
         try:
             K = fs.getNode("camera_matrix").mat()
             dist = fs.getNode("distortion_coefficients").mat()
-            w, h = fs.getNode("image_width").real(), fs.getNode("image_height").real()
+            wn, hn = fs.getNode("image_width"), fs.getNode("image_height")
+            w, h = wn.real(), hn.real()
             if K is None or K.shape != (3, 3):
                 raise InputError(f"camera file {p}: 'camera_matrix' missing or not 3x3")
-            if not w or not h:
+            if wn.empty() or hn.empty():
                 raise InputError(f"camera file {p}: 'image_width'/'image_height' missing")
+            if not (w >= 1 and h >= 1):
+                raise InputError(
+                    f"camera file {p}: image size {w:g}x{h:g}; 'image_width' and "
+                    "'image_height' must be positive (pixels of the calibrated images)"
+                )
             rms_node = fs.getNode("rms_px")
             rms = rms_node.real() if not rms_node.empty() else None
             meta = {}

@@ -358,12 +358,49 @@ def require_file(path: str | os.PathLike, what: str = "file") -> Path:
     return p
 
 
+class _DuplicateKey(Exception):
+    def __init__(self, key, first: int, again: int):
+        super().__init__(key)
+        self.key, self.first, self.again = key, first, again
+
+
+_LOADER: list = []
+
+
+def _unique_keys_loader():
+    """yaml.SafeLoader that refuses a key given twice in one mapping (plain YAML keeps the
+    last silently: a config's first `track:` section would vanish)."""
+    if _LOADER:
+        return _LOADER[0]
+    import yaml
+
+    class UniqueKeys(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if isinstance(key_node, yaml.ScalarNode):
+                    key = key_node.value
+                    line = key_node.start_mark.line + 1
+                    if key in seen and key != "<<":
+                        raise _DuplicateKey(key, seen[key], line)
+                    seen[key] = line
+            return super().construct_mapping(node, deep)
+
+    _LOADER.append(UniqueKeys)
+    return UniqueKeys
+
+
 def read_yaml(path: Path, what: str):
     """Parsed YAML of a user's file; bad syntax or a binary file is one clear line."""
     import yaml  # here, not at the top: `mirage --version` must not pay for it
 
     try:
-        return yaml.safe_load(Path(path).read_text())
+        return yaml.load(Path(path).read_text(), Loader=_unique_keys_loader())  # noqa: S506
+    except _DuplicateKey as e:
+        raise InputError(
+            f"{what} {path}: '{e.key}' appears twice (line {e.first} and line {e.again}); "
+            "YAML keeps only the last, so merge them into one"
+        ) from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""

@@ -186,7 +186,19 @@ def load_path(path) -> Path_:
     return path_from_dict(data, str(p))
 
 
+PATH_KEYS = ("type", "center_m", "radius_m", "height_m", "direction", "look_at_m", "heading",
+             "start_deg", "points_m", "waypoints_m", "time_s")  # fmt: skip
+MAX_M = 1.0e7  # m: any coordinate or radius beyond is a unit mix-up (the Earth is 6.4e6 m)
+
+
 def path_from_dict(data: dict, where: str = "path") -> Path_:
+    import difflib
+
+    for k in data:
+        if str(k) not in PATH_KEYS:
+            close = difflib.get_close_matches(str(k), PATH_KEYS, n=1, cutoff=0.6)
+            hint = f"did you mean '{close[0]}'?" if close else f"valid keys: {', '.join(PATH_KEYS)}"
+            raise InputError(f"{where}: unknown key '{k}' ({hint})")
     kind = str(data.get("type", "")).strip().lower()
     if kind not in PATH_TYPES:
         got = data.get("type")
@@ -247,6 +259,8 @@ def _polyline(pts: np.ndarray, times, look, where: str) -> PolylinePath:
         raise InputError(f"{where}: a polyline needs at least 2 waypoints, got {len(pts)}")
     if not np.isfinite(pts).all():
         raise InputError(f"{where}: waypoints must be finite numbers")
+    if (np.abs(pts) > MAX_M).any():
+        raise InputError(f"{where}: waypoints beyond {MAX_M:g} m (metres expected)")
     seg = np.linalg.norm(np.diff(pts[:, :2], axis=0), axis=1)
     if not (seg > 0).any():
         raise InputError(f"{where}: all waypoints have the same x, y; the path has no direction")
@@ -278,6 +292,8 @@ def _num(data: dict, key: str, where: str, default=None, required=False) -> floa
         raise InputError(f"{where}: {key} must be a number, got {data[key]!r}") from None
     if not np.isfinite(v):
         raise InputError(f"{where}: {key} must be finite")
+    if key.endswith("_m") and abs(v) > MAX_M:
+        raise InputError(f"{where}: {key} {v:g} is beyond {MAX_M:g} m (metres expected)")
     return v
 
 
@@ -289,4 +305,6 @@ def _vec(value, sizes: tuple[int, ...], key: str, where: str) -> np.ndarray:
     if len(v) not in sizes or not np.isfinite(v).all():
         want = " or ".join(str(s) for s in sizes)
         raise InputError(f"{where}: {key} must be {want} finite numbers, got {value!r}")
+    if key != "time_s" and (np.abs(v) > MAX_M).any():
+        raise InputError(f"{where}: {key} {value!r} is beyond {MAX_M:g} m (metres expected)")
     return v

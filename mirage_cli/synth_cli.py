@@ -122,7 +122,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @shown(
     "--exposure",
-    type=click.FloatRange(min=0, max=1, min_open=True),
+    type=FiniteFloat(min=0, max=1, min_open=True),
     default=0.5,
     help="Shutter time as a share of the frame interval (the span --motion-blur averages).",
 )
@@ -140,7 +140,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @click.option(
     "--floor-tiles",
-    type=click.FloatRange(min=0.05),
+    type=FiniteFloat(min=0.05),
     metavar="PERIOD_M",
     help="Stress: the ground is one texture tile repeated every PERIOD_M metres (floor "
     "features have exact twins one period apart).",
@@ -159,7 +159,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @shown(
     "--video-radius",
-    type=click.FloatRange(min=0.8),
+    type=FiniteFloat(min=0.8),
     default=default_of(synth.OrbitPath, "radius_m"),
     help="Orbit video circle radius (m); the keyframes keep --radius.",
 )
@@ -171,7 +171,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @shown(
     "--turns",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=default_of(synth.OrbitPath, "turns"),
     help="Orbit video: turns around the landmark over --duration (sets the speed).",
 )

@@ -344,6 +344,15 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
     if "status" not in df.columns:
         df["status"] = Status.OK.value
     df["status"] = df["status"].str.strip().replace("", Status.OK.value)
+    words = {s.value for s in Status}
+    unknown = ~df["status"].isin(words)
+    if unknown.any():  # a word of another tool's ('OK', 'good'): its frames would be dropped
+        i = int(np.flatnonzero(unknown.to_numpy())[0])
+        raise InputError(
+            f"pose file {p}: column 'status' row {i + 2} (frame {df['frame'].iloc[i]}) is "
+            f"{df['status'].iloc[i]!r}; expected one of {', '.join(s.value for s in Status)} "
+            "(or empty: ok)"
+        )
     ok = df["status"] == Status.OK
     for col in ["time_s"] + REQUIRED_INPUT:
         if col not in df.columns:

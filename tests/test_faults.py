@@ -517,6 +517,23 @@ CASES += [
     C("synth-height-makes-width-absurd", *SYNTH, "--height", "8000", contains="10667x8000"),
     C("demo-out-inside-sample", "demo", "--sample-data", "sample", "--out", "sample/d",
       needs=["sample_copy"], contains="inside --sample-data"),
+    # --- issue 30: the last silent inputs, and messages that say what to fix -------------
+    C("config-two-track-sections", *REPORT, needs=["cfg_dup"], contains="'track' appears twice"),
+    C("report-path-unknown-key", *REPORT[:3], "look.yaml", "-o", "out.csv", needs=["paths"],
+      contains="did you mean 'look_at_m'"),
+    C("report-path-radius-1e308", *REPORT[:3], "huge.yaml", "-o", "out.csv", needs=["paths"],
+      contains="radius_m 1e+308 is beyond"),
+    C("report-poses-status-unknown", "report", "status.csv", "--path", "{PATH}", "-o",
+      "out.csv", needs=["paths"], contains="'good'; expected one of ok, lost"),
+    C("report-truth-transform-missing-file", *REPORT, "--truth", "{TRUTH}",
+      "--truth-transform", "mocap/t_body_cam.txt", contains="file mocap/t_body_cam.txt not found"),
+    C("synth-video-radius-nan", *SYNTH, "--video-radius", "nan", contains="--video-radius"),
+    C("bm-nfeatures-huge", *BUILD, "--poses", "{KP}", "--nfeatures", "100000000000",
+      contains="--nfeatures"),
+    C("track-camera-width-zero", *TRACK, "--camera", "zero_w.yaml", needs=["paths"],
+      contains="must be positive"),
+    C("batch-empty-range-frames-and-seconds", "batch", "camp3.yaml", needs=["campaign"],
+      contains="'end' 30 (frame 30) must come after 'start' 2s (frame 60)"),
     C("batch-out-is-flight-truth", "batch", "camp.yaml", needs=["campaign"],
       contains="is the same file as flight 'fl' truth"),
     C("batch-out-inside-flight-frames", "batch", "camp2.yaml", needs=["frames", "campaign"],
@@ -545,6 +562,17 @@ def _setup(needs: list, world: dict) -> None:
         shutil.copyfile(world["KP"], tmp / "sample" / "keyframes" / "poses.csv")
         (tmp / "sample" / "orbit.mp4").write_bytes(b"")
         (tmp / "sample" / "calibration").mkdir()
+    if "cfg_dup" in needs:
+        (tmp / "mirage.yaml").write_text(
+            "track:\n  every: 2\nreport:\n  t-max-diff: 0.02\ntrack:\n  max-rmse: 2\n"
+        )
+    if "paths" in needs:
+        (tmp / "look.yaml").write_text("type: circle\nradius_m: 1.5\nlook_at: [0, 0, 0.2]\n")
+        (tmp / "huge.yaml").write_text("type: circle\nradius_m: 1e308\n")
+        (tmp / "status.csv").write_text(GOOD.replace("frame,", "frame,status,", 1)
+                                        .replace("\n0,", "\n0,ok,").replace("\n1,", "\n1,good,"))
+        cam = world["CAM"].read_text()
+        (tmp / "zero_w.yaml").write_text(cam.replace("image_width: 640", "image_width: 0"))
     if "transform" in needs:
         (tmp / "tt.txt").write_text("0 0 0 1 0 0 0\n")
     if "cfg" in needs:
@@ -555,6 +583,10 @@ def _setup(needs: list, world: dict) -> None:
         (tmp / "camp.yaml").write_text(
             f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: camp_out}}\n"
             f"flights:\n  - {{video: {world['V']}, name: fl, truth: camp_out/fl/poses.csv}}\n"
+        )
+        (tmp / "camp3.yaml").write_text(
+            f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: camp3_out}}\n"
+            f"flights:\n  - {{video: {world['V']}, start: 2s, end: 30}}\n"
         )
         (tmp / "camp2.yaml").write_text(
             f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: frames}}\n"
@@ -1057,3 +1089,30 @@ def test_out_of_memory_is_one_line_exit_1(capsys, monkeypatch):
     monkeypatch.setattr(synth_cli.synth, "default_camera", no_memory)
     code, err, _ = run_in_process(["synth", "x"], capsys)
     assert_contract(code, err, 1, "out of memory")
+
+
+def test_image_names_giving_one_time_warn(tmp_path, caplog):
+    """100.5.png and 100.50.png are one time: a warning naming both (time_s stays empty)."""
+    from mirage_cli.frames import FrameSource
+
+    for name in ("100.5.png", "100.50.png", "100.6.png"):
+        shutil.copyfile(CAL / "right01.jpg", tmp_path / name)
+    with caplog.at_level("WARNING", logger="mirage"):
+        src = FrameSource([tmp_path])
+    assert src.times is None
+    assert "100.5.png and 100.50.png have names giving the same time (100.5 s)" in caplog.text
+
+
+def test_camera_info_with_a_nan_focal_length_is_refused():
+    """A NaN in a bag's camera_info K was read as 'uncalibrated' (None) without a word."""
+    from types import SimpleNamespace
+
+    from mirage_cli.bags import camera_from_info
+    from mirage_cli.errors import InputError
+
+    k = [float("nan"), 0, 320, 0, 500, 240, 0, 0, 1]
+    msg = SimpleNamespace(k=k, d=[0.0] * 5, distortion_model="plumb_bob", width=640, height=480)
+    with pytest.raises(InputError, match="NaN"):
+        camera_from_info(msg, "/cam/camera_info in x.bag")
+    msg.k = [0.0] * 9  # all zero: uncalibrated, as before
+    assert camera_from_info(msg, "x") is None
