@@ -606,6 +606,8 @@ class Tracker:
         if front.sum() < self.s.min_inliers:
             return None
         uv = self.camera.project(X[front], pred)
+        if not np.isfinite(uv).all():  # points far off-axis: the distortion has no image
+            return None  # (what the NaN box came to before, without numpy's warning)
         h, w = shape[:2]
         m = self.s.detect_margin_px
         lo, hi = np.percentile(uv, [1, 99], axis=0)  # one partition for both

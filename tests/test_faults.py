@@ -1116,3 +1116,31 @@ def test_camera_info_with_a_nan_focal_length_is_refused():
         camera_from_info(msg, "/cam/camera_info in x.bag")
     msg.k = [0.0] * 9  # all zero: uncalibrated, as before
     assert camera_from_info(msg, "x") is None
+
+
+def test_model_box_with_nan_projections_is_the_whole_frame_without_a_warning(sample_model):
+    """A projection the lens model cannot place (NaN) made numpy warn 'invalid value
+    encountered in cast' and the box came out empty, i.e. the whole frame: the same result
+    now, said without the warning."""
+    import numpy as np
+
+    from mirage_cli.model import LandmarkModel
+    from mirage_cli.pose import Pose
+    from mirage_cli.track import Tracker, TrackSettings
+
+    model = LandmarkModel.load(sample_model)
+    tracker = Tracker(model, model.camera, TrackSettings())
+    pose = model.keyframes[0].pose
+    real = tracker.camera.project
+
+    def with_nan(X, p):
+        uv = real(X, p)
+        uv[0] = np.nan
+        return uv
+
+    tracker.camera.project = with_nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tracker._model_box(pose, (480, 640)) is None
+    tracker.camera.project = real
+    assert isinstance(pose, Pose)
