@@ -637,7 +637,9 @@ def _dask_client(address: str):
     try:
         from distributed import Client
     except ImportError:
-        raise InputError("--scheduler needs distributed: pip install 'mirage-cli[batch]'") from None
+        raise InputError(
+            "--scheduler needs distributed: pip install -e '.[batch]' in the mirage-cli checkout"
+        ) from None
     import logging
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # its reconnect chatter

@@ -31,6 +31,7 @@ from .config import check_config, read_config  # noqa: E402
 from .errors import EnvironmentFailure, MirageError  # noqa: E402
 
 _debug = {"on": False}
+GLOBAL = ("-v", "--verbose", "-q", "--quiet", "--debug", "--config", "-V", "--version")
 # an OS error the user can fix (a path or a permission), as opposed to a failing machine
 _USER_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EISDIR,
                 errno.ELOOP, errno.ENAMETOOLONG}  # fmt: skip
@@ -234,6 +235,12 @@ def _describe(e: BaseException) -> int:
             if e.ctx and e.ctx.parent
             else " (see 'mirage --help')"
         )
+        name = getattr(e, "option_name", None)
+        if isinstance(e, click.NoSuchOption) and e.ctx and e.ctx.parent and name in GLOBAL:
+            hint = (
+                f" ({name} is a global option: it goes before the command, "
+                f"'mirage {name} {e.ctx.info_name} ...')"
+            )
         _say(f"mirage: error: {e.format_message()}{hint}")
         return 2
     if isinstance(e, click.ClickException):

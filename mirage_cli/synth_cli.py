@@ -178,8 +178,8 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 @click.option(
     "--look-away",
     metavar="SECONDS|START,END",
-    help="The look-away stretch: its length (starting at 78%% of the video; 0 = none) or its "
-    "start and end times in seconds. Default: min(2.2 s, 11%% of the video) at 78%%.",
+    help="The look-away stretch: its length (starting at 78% of the video; 0 = none) or its "
+    "start and end times in seconds. Default: min(2.2 s, 11% of the video) at 78%.",
 )
 def synth_cmd(
     outdir,

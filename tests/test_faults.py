@@ -534,6 +534,11 @@ CASES += [
       contains="must be positive"),
     C("batch-empty-range-frames-and-seconds", "batch", "camp3.yaml", needs=["campaign"],
       contains="'end' 30 (frame 30) must come after 'start' 2s (frame 60)"),
+    # --- issue 30: the small things -------------------------------------------------------
+    C("track-global-option-after-command", *TRACK, "-q",
+      contains="-q is a global option: it goes before the command, 'mirage -q track ...'"),
+    C("cal-board-counts-squares", "calibrate", "frames", "--board", "10x7", "--square",
+      "0.025", "-o", "out.yaml", needs=["frames"], contains="try --board 9x6"),
     C("batch-out-is-flight-truth", "batch", "camp.yaml", needs=["campaign"],
       contains="is the same file as flight 'fl' truth"),
     C("batch-out-inside-flight-frames", "batch", "camp2.yaml", needs=["frames", "campaign"],
@@ -1144,3 +1149,23 @@ def test_model_box_with_nan_projections_is_the_whole_frame_without_a_warning(sam
         assert tracker._model_box(pose, (480, 640)) is None
     tracker.camera.project = real
     assert isinstance(pose, Pose)
+
+
+@pytest.mark.parametrize("command", sorted(cli.COMMANDS))
+def test_help_shows_no_none_bound_and_no_doubled_percent(command, capsys):
+    with own_signal_handlers(), pytest.raises(SystemExit) as e:
+        cli.main([command, "--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0
+    assert "None]" not in out and "None;" not in out and "%%" not in out, out
+
+
+def test_square_in_millimetres_warns(world, capsys, monkeypatch):
+    """--square 25 is a 25 m square: calibrated (the data are usable), with a warning."""
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    _setup(["frames"], world)
+    args = ["calibrate", "frames", "--board", "9x6", "--square", "25", "-o", "cam.yaml"]
+    code, err, _ = run_in_process(args, capsys)
+    assert code == 0, err
+    assert "mirage: warning: --square 25 is in metres" in err and "--square 0.025" in err
