@@ -139,13 +139,20 @@ def report_cmd(
     for out in (output, summary, plot):
         if out:
             check_writable(out)
-    desired = load_path(path)
-    table = read_pose_csv(poses)
+    with ui.stage("read the path and the poses"):
+        desired = load_path(path)
+        table = read_pose_csv(poses)
+    ui.detail(f"path: {type(desired).__name__}, {desired.length_m:.3f} m long")
+    ui.detail(f"poses: {len(table)} frames, {(table['status'] == 'ok').sum()} ok")
     settings = TruthSettings(truth_topic, BodyToCamera.parse(truth_transform), t_offset, t_max_diff)
     if not truth and (truth_topic or truth_transform or t_offset):
         raise InputError("--truth-topic, --truth-transform and --t-offset need --truth FILE")
-    truth_df = load_truth(truth, table, settings) if truth else None
-    publish_report(make_report(table, desired, truth_df), desired, output, summary, plot)
+    with ui.stage("read the truth"):
+        truth_df = load_truth(truth, table, settings) if truth else None
+    with ui.stage("compute the errors"):
+        rep = make_report(table, desired, truth_df)
+    with ui.stage("write the outputs"):
+        publish_report(rep, desired, output, summary, plot)
 
 
 def publish_report(rep: Report, desired, output, summary=None, plot=None) -> None:

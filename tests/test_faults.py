@@ -1169,3 +1169,19 @@ def test_square_in_millimetres_warns(world, capsys, monkeypatch):
     code, err, _ = run_in_process(args, capsys)
     assert code == 0, err
     assert "mirage: warning: --square 25 is in metres" in err and "--square 0.025" in err
+
+
+def test_verbose_prints_stages_frames_and_refusals(world, capsys, monkeypatch):
+    """-v: each stage's time and, after tracking, the refused frames by reason and the
+    keyframes used; -vv: a line per frame. Without -v none of it."""
+    monkeypatch.chdir(world["TMP"])
+    code, err, _ = run_in_process(["-v", *_fill(REPORT, world)], capsys)
+    assert code == 0 and "stage compute the errors:" in err and "poses: 540 frames" in err
+    code, err, _ = run_in_process(_fill(REPORT, world), capsys)
+    assert code == 0 and "stage" not in err
+    track = [*_fill(TRACK[:-1], world), "new.csv", "--start", "425", "--end", "432"]
+    code, err, _ = run_in_process(["-vv", *track], capsys)
+    assert code == 0, err
+    assert "stage load the compiled solver:" in err and "stage tracking:" in err
+    assert re.search(r"^frame 425: \w+", err, re.M), err
+    assert re.search(r"^refused \d+ frame\(s\) as lost", err, re.M), err
