@@ -179,13 +179,16 @@ class Camera:
             self.model == other.model
             and self.size == other.size
             and np.allclose(self.K, other.K, atol=tol_px)
-            and np.allclose(self._dist5(), other._dist5(), atol=1e-4)
+            and np.allclose(*self._dists_alike(other), atol=1e-4)
         )
 
-    def _dist5(self) -> np.ndarray:
-        d = np.zeros(max(5, self.dist.size))
-        d[: self.dist.size] = self.dist
-        return d
+    def _dists_alike(self, other: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Both distortion vectors zero-padded to one length (5 and 8 coefficients of the
+        same lens compare equal when the extra ones are 0)."""
+        n = max(5, self.dist.size, other.dist.size)
+        a, b = np.zeros(n), np.zeros(n)
+        a[: self.dist.size], b[: other.dist.size] = self.dist, other.dist
+        return a, b
 
     # --- files --------------------------------------------------------------------------
     def save(self, path) -> None:

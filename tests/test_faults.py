@@ -539,6 +539,8 @@ CASES += [
       contains="-q is a global option: it goes before the command, 'mirage -q track ...'"),
     C("cal-board-counts-squares", "calibrate", "frames", "--board", "10x7", "--square",
       "0.025", "-o", "out.yaml", needs=["frames"], contains="try --board 9x6"),
+    C("track-plumb-bob-8-coefficients", *TRACK, "--camera", "plumb8.yaml", "--end", "0s",
+      needs=["paths"], contains="--end"),
     C("batch-out-is-flight-truth", "batch", "camp.yaml", needs=["campaign"],
       contains="is the same file as flight 'fl' truth"),
     C("batch-out-inside-flight-frames", "batch", "camp2.yaml", needs=["frames", "campaign"],
@@ -577,6 +579,10 @@ def _setup(needs: list, world: dict) -> None:
         (tmp / "status.csv").write_text(GOOD.replace("frame,", "frame,status,", 1)
                                         .replace("\n0,", "\n0,ok,").replace("\n1,", "\n1,good,"))
         cam = world["CAM"].read_text()
+        (tmp / "plumb8.yaml").write_text(  # the sample's lens, as 8 coefficients (3 zero)
+            cam.replace("cols: 5", "cols: 8").replace("0. ]", "0., 0., 0., 0. ]")
+            + 'distortion_model: "plumb_bob"\n'
+        )
         (tmp / "zero_w.yaml").write_text(cam.replace("image_width: 640", "image_width: 0"))
     if "transform" in needs:
         (tmp / "tt.txt").write_text("0 0 0 1 0 0 0\n")
