@@ -216,10 +216,6 @@ def _stat(p: str):
         return None
 
 
-def _same_stat(a, b) -> bool:
-    return a is not None and b is not None and (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
-
-
 @dataclass
 class _Input:
     """What one input option names: a file or folder (its real path and inode), or a glob
