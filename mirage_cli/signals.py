@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
 _state = {"deferring": 0, "pending": None, "raised": None}
@@ -50,9 +51,20 @@ def seen() -> None:
     _state["raised"] = None
 
 
+def _unraisable(unraisable) -> None:
+    """Our interrupt raised inside a callback that cannot propagate it (a ctypes callback,
+    a finaliser) is not printed as 'Exception ignored in ...': `check` raises it again
+    where it can end the run. Anything else goes to Python's own hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def install() -> None:
     """Both signals raise; safe to call more than once (main thread only)."""
     _state.update(deferring=0, pending=None, raised=None)
+    if sys.unraisablehook is sys.__unraisablehook__:
+        sys.unraisablehook = _unraisable
     with contextlib.suppress(ValueError):  # not the main thread: leave the handlers alone
         signal.signal(signal.SIGINT, _handler)
         signal.signal(signal.SIGTERM, _handler)

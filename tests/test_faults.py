@@ -1195,3 +1195,29 @@ def test_verbose_prints_stages_frames_and_refusals(world, capsys, monkeypatch):
     assert "stage load the compiled solver:" in err and "stage tracking:" in err
     assert re.search(r"^frame 425: \w+", err, re.M), err
     assert re.search(r"^refused \d+ frame\(s\) as lost", err, re.M), err
+
+
+def test_an_interrupt_in_a_callback_is_not_printed_but_raised_later(capsys):
+    """A signal landing in a callback Python cannot propagate from (ctypes, a finaliser)
+    went to 'Exception ignored in ...' on stderr (a traceback beside the one line):
+    it is silent there and `check` raises it."""
+    import ctypes
+
+    from mirage_cli import signals
+
+    saved = sys.unraisablehook
+    try:
+        sys.unraisablehook = sys.__unraisablehook__
+        with own_signal_handlers():
+            signals.install()
+
+            @ctypes.CFUNCTYPE(None)
+            def callback():
+                os.kill(os.getpid(), signal.SIGTERM)  # the handler raises in here
+
+            callback()
+            assert "Exception ignored" not in capsys.readouterr().err
+            with pytest.raises(signals.Terminated):
+                signals.check()
+    finally:
+        sys.unraisablehook = saved
