@@ -510,7 +510,8 @@ def _too_few_message(det: Detections, board: Board) -> str:
         hint = ""
         if board.pattern == "chessboard":
             hint = "; check --board: it counts inner corners, COLSxROWS"
-            if min(board.cols, board.rows) > 2:  # squares given for corners, most often
+            if 2 < min(board.cols, board.rows) and max(board.cols, board.rows) <= 60:
+                # squares given for corners, most often
                 hint += (
                     f" (a board of {board.cols}x{board.rows} squares has "
                     f"{board.cols - 1}x{board.rows - 1} inner corners: try --board "

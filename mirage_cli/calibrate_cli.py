@@ -101,7 +101,7 @@ def _positive_option(*decls: str, **kw):
 @file_option("--report", default=None, help="Write a PNG with corner coverage and per-view errors.")
 @click.option(
     "--subpix-window",
-    type=BoundedInt(min=1),
+    type=BoundedInt(min=1, max=100),
     default=None,
     help="Fixed cornerSubPix half-window in px [default: 1/4 of the corner spacing, "
     "max 8]; 11 reproduces OpenCV's calibration sample.",

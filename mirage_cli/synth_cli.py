@@ -88,7 +88,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     default=synth.CALIB_SQUARE_M,
     help="Chessboard square size (m).",
 )
-@shown("--calib-views", type=BoundedInt(min=1), default=20)
+@shown("--calib-views", type=BoundedInt(min=1, max=1000), default=20)
 @shown(
     "--keyframe-step",
     type=FiniteFloat(min=1, max=180),

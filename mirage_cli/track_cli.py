@@ -91,7 +91,7 @@ def also_write_options(f):
 )
 @shown(
     "--min-inliers",
-    type=BoundedInt(min=4),
+    type=BoundedInt(min=4, max=100_000),
     default=TrackSettings.min_inliers,
     help="Fewest inliers of a pose found without a prediction (while tracking: 6, and the "
     "pose's uncertainty decides).",
