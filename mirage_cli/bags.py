@@ -313,6 +313,11 @@ def camera_from_info(msg, where: str, size: tuple[int, int] | None = None) -> Ca
     (0x0, some drivers) takes `size`, the images' (width, height)."""
     K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, float)
     D = np.asarray(msg.d if hasattr(msg, "d") else msg.D, float)
+    if K.size == 9 and not np.isfinite(K).all():
+        raise InputError(
+            f"{where}: the camera matrix K holds NaN or infinity ({K.tolist()}); give the "
+            "camera with --camera FILE"
+        )
     if K.size != 9 or not K[0] > 0:
         return None
     name = str(msg.distortion_model).strip().lower() or "plumb_bob"

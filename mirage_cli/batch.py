@@ -156,7 +156,42 @@ def load_campaign(path, output: str | os.PathLike | None = None) -> Campaign:
             )
         seen[fl.name] = w.split(": ", 1)[1]
         result.append(fl)
-    return Campaign(src, out, result)
+    campaign = Campaign(src, out, result)
+    check_outputs(campaign)
+    return campaign
+
+
+def flight_inputs(flight: Flight) -> dict:
+    """Every file, folder or glob a flight reads, by its campaign key."""
+    transform = flight.truth_transform
+    return {
+        "video": flight.video,
+        "model": flight.model,
+        "path": flight.path,
+        "camera": flight.camera,
+        "truth": flight.truth,
+        "truth_transform": transform if transform and os.path.exists(transform) else None,
+    }
+
+
+def check_outputs(campaign: Campaign) -> None:
+    """Before anything runs: no file a flight writes (OUT/<name>/poses.csv, ...) nor the
+    campaign's table and plot may be, or be inside, any flight's input or the campaign
+    file (a truth CSV or a keyframe folder's poses.csv in the output folder would be
+    overwritten, then 'matched' against itself)."""
+    inputs = {"campaign file": str(campaign.source)}
+    for f in campaign.flights:
+        inputs |= {f"flight '{f.name}' {k}": v for k, v in flight_inputs(f).items() if v}
+    outputs = {
+        "output": [str(campaign.output / n) for n in (CAMPAIGN_CSV, CAMPAIGN_PNG)],
+    }
+    for f in campaign.flights:
+        d = campaign.output / f.name
+        outputs[f"flight '{f.name}' output"] = [str(d / n) for n in (*OUTPUTS, MARKER)]
+    try:
+        fileio.refuse_overwrite(outputs, inputs)
+    except InputError as e:
+        raise InputError(f"campaign {campaign.source}: {e}") from None
 
 
 def _natural(p: str):
@@ -220,6 +255,18 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
     s, e = when["start"], when["end"]
     if s is not None and e is not None and s.seconds == e.seconds and e.value <= s.value:
         raise InputError(f"{where}: 'end' {e} must come after 'start' {s}")
+    if s is not None and e is not None and s.seconds != e.seconds:  # frames and seconds
+        from .frames import FrameSource
+
+        try:
+            fps = FrameSource([vpath]).fps
+        except MirageError:
+            fps = None  # an unreadable video fails as that flight's failure, later
+        if fps is not None and e.frame(fps) <= s.frame(fps):
+            raise InputError(
+                f"{where}: 'end' {e} (frame {e.frame(fps)}) must come after 'start' {s} "
+                f"(frame {s.frame(fps)})"
+            )
     name = str(get("name", what="name") or _default_name(vpath))
     if name.startswith(".") or "/" in name or "\\" in name or name in (CAMPAIGN_CSV, CAMPAIGN_PNG):
         raise InputError(f"{where}: name '{name}' must be a plain folder name")
@@ -590,7 +637,9 @@ def _dask_client(address: str):
     try:
         from distributed import Client
     except ImportError:
-        raise InputError("--scheduler needs distributed: pip install 'mirage-cli[batch]'") from None
+        raise InputError(
+            "--scheduler needs distributed: pip install -e '.[batch]' in the mirage-cli checkout"
+        ) from None
     import logging
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # its reconnect chatter
@@ -635,6 +684,9 @@ def campaign_figure(results: list[FlightResult]):
     """Per flight: tracked %, then the median and p95 of the path error and (with truth)
     of the position and rotation errors, each on its own axis (they differ by orders of
     magnitude); flights that did not finish are marked."""
+    from .plotting import import_matplotlib
+
+    import_matplotlib()
     from matplotlib.figure import Figure
 
     panels = [("path error (m)", "path_error_median_m", "path_error_p95_m", 1.0)]

@@ -6,7 +6,7 @@ import time
 
 import click
 
-from . import ui
+from . import signals, ui
 from .boards import load_board
 from .build_model import (
     ROI,
@@ -136,7 +136,12 @@ class _Stages:
     help="One keyframe per this much azimuth (per elevation band).",
 )
 @shown("--detector", type=click.Choice(DETECTORS), default=DetectorSettings.name)
-@shown("--nfeatures", type=BoundedInt(min=50), default=DetectorSettings.nfeatures)
+@shown(
+    "--nfeatures",
+    type=BoundedInt(min=50, max=1_000_000),
+    default=DetectorSettings.nfeatures,
+    help="Features detected per view.",
+)
 @shown(
     "--roi",
     default=default_of(BuildSettings, "roi").kind,
@@ -220,6 +225,7 @@ def build_model_cmd(
         "poses": poses_path,
         "board": board.to_yaml() if board else None,
     }
+    signals.check()  # a signal swallowed by compiled code must not replace the model
     save_model(res, output, source, t0)
 
 

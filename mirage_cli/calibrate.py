@@ -509,10 +509,14 @@ def _too_few_message(det: Detections, board: Board) -> str:
     if n == 0:
         hint = ""
         if board.pattern == "chessboard":
-            hint = (
-                f"; check --board (inner corners, COLSxROWS) or try --board "
-                f"{board.rows}x{board.cols}"
-            )
+            hint = "; check --board: it counts inner corners, COLSxROWS"
+            if 2 < min(board.cols, board.rows) and max(board.cols, board.rows) <= 60:
+                # squares given for corners, most often
+                hint += (
+                    f" (a board of {board.cols}x{board.rows} squares has "
+                    f"{board.cols - 1}x{board.rows - 1} inner corners: try --board "
+                    f"{board.cols - 1}x{board.rows - 1})"
+                )
         else:
             hint = "; check --board (squares), --dictionary and --marker"
         return f"no {board.label} {board.pattern} found in any of the {det.examined} {what}{hint}"

@@ -34,6 +34,9 @@ def _positive(ctx, param, value):
     return value
 
 
+MAX_PLAUSIBLE_SQUARE_M = 0.5  # a printed or plotted board's square; larger is a unit slip
+
+
 def _positive_option(*decls: str, **kw):
     """A number that must be > 0 when given."""
     return click.option(*decls, type=FiniteFloat(), callback=_positive, **kw)
@@ -98,7 +101,7 @@ def _positive_option(*decls: str, **kw):
 @file_option("--report", default=None, help="Write a PNG with corner coverage and per-view errors.")
 @click.option(
     "--subpix-window",
-    type=BoundedInt(min=1),
+    type=BoundedInt(min=1, max=100),
     default=None,
     help="Fixed cornerSubPix half-window in px [default: 1/4 of the corner spacing, "
     "max 8]; 11 reproduces OpenCV's calibration sample.",
@@ -142,6 +145,12 @@ def calibrate(
     check_writable(output)  # fail now, not after minutes of detection
     if report:
         check_writable(report)
+    for flag, value in (("--square", square), ("--marker", marker)):
+        if value is not None and value > MAX_PLAUSIBLE_SQUARE_M:
+            ui.log.warning(
+                f"{flag} {value:g} is in metres: a {value:g} m square; if you meant "
+                f"millimetres, use {flag} {value / 1000:g} (the camera's distances scale with it)"
+            )
     target = Board(board[0], board[1], square, pattern, marker, dictionary, legacy_pattern)
     opts = CalibOptions(
         model=int(model),

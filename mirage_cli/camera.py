@@ -179,13 +179,16 @@ class Camera:
             self.model == other.model
             and self.size == other.size
             and np.allclose(self.K, other.K, atol=tol_px)
-            and np.allclose(self._dist5(), other._dist5(), atol=1e-4)
+            and np.allclose(*self._dists_alike(other), atol=1e-4)
         )
 
-    def _dist5(self) -> np.ndarray:
-        d = np.zeros(max(5, self.dist.size))
-        d[: self.dist.size] = self.dist
-        return d
+    def _dists_alike(self, other: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """Both distortion vectors zero-padded to one length (5 and 8 coefficients of the
+        same lens compare equal when the extra ones are 0)."""
+        n = max(5, self.dist.size, other.dist.size)
+        a, b = np.zeros(n), np.zeros(n)
+        a[: self.dist.size], b[: other.dist.size] = self.dist, other.dist
+        return a, b
 
     # --- files --------------------------------------------------------------------------
     def save(self, path) -> None:
@@ -238,11 +241,17 @@ class Camera:
         try:
             K = fs.getNode("camera_matrix").mat()
             dist = fs.getNode("distortion_coefficients").mat()
-            w, h = fs.getNode("image_width").real(), fs.getNode("image_height").real()
+            wn, hn = fs.getNode("image_width"), fs.getNode("image_height")
+            w, h = wn.real(), hn.real()
             if K is None or K.shape != (3, 3):
                 raise InputError(f"camera file {p}: 'camera_matrix' missing or not 3x3")
-            if not w or not h:
+            if wn.empty() or hn.empty():
                 raise InputError(f"camera file {p}: 'image_width'/'image_height' missing")
+            if not (w >= 1 and h >= 1):
+                raise InputError(
+                    f"camera file {p}: image size {w:g}x{h:g}; 'image_width' and "
+                    "'image_height' must be positive (pixels of the calibrated images)"
+                )
             rms_node = fs.getNode("rms_px")
             rms = rms_node.real() if not rms_node.empty() else None
             meta = {}

@@ -31,6 +31,7 @@ from .config import check_config, read_config  # noqa: E402
 from .errors import EnvironmentFailure, MirageError  # noqa: E402
 
 _debug = {"on": False}
+GLOBAL = ("-v", "--verbose", "-q", "--quiet", "--debug", "--config", "-V", "--version")
 # an OS error the user can fix (a path or a permission), as opposed to a failing machine
 _USER_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EISDIR,
                 errno.ELOOP, errno.ENAMETOOLONG}  # fmt: skip
@@ -144,6 +145,9 @@ def cli(ctx, config_path, verbose, quiet, debug):
     _debug["on"] = debug
     ui.setup(verbose, quiet)
     raw, src = read_config(config_path)
+    # the config is an input of every command: no output may overwrite it
+    fileio.GUARDED_INPUTS.clear()
+    fileio.GUARDED_INPUTS["--config"] = str(src) if src is not None else None
     ctx.default_map = check_config(raw, cli.commands, src) if src is not None else {}
     ctx.obj = {"config": ctx.default_map, "config_path": src}
 
@@ -161,6 +165,8 @@ def main(argv: list[str] | None = None) -> None:
             _debug["on"] = True
         _check_std_streams(quiet="-q" in argv or "--quiet" in argv)
         code = _invoke(argv)
+        if code == 0:
+            signals.check()  # a swallowed signal still ends the run as interrupted
     except BaseException as e:  # noqa: BLE001 - every outcome becomes one line and a code
         code = _report(e)
     try:
@@ -199,7 +205,18 @@ def _say(line: str) -> None:
 def _describe(e: BaseException) -> int:
     if isinstance(e, SystemExit):
         return e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    if isinstance(e, MemoryError):
+        _say(
+            "mirage: error: out of memory (an input or option asks for more than this machine "
+            "has: check image sizes and counts)"
+        )
+        return 1
     if isinstance(e, KeyboardInterrupt | click.exceptions.Abort):
+        signals.seen()
+        # a signal that cut a library's object in half (llvmlite while numba loads) makes
+        # its finaliser fail at exit: "Exception ignored in ...", a second line; the one
+        # line below says what happened
+        sys.unraisablehook = lambda unraisable: None
         cause = e.__cause__ if isinstance(e, click.exceptions.Abort) else e
         _say(signals.message(cause or e))
         return signals.exit_code(cause or e)
@@ -218,6 +235,12 @@ def _describe(e: BaseException) -> int:
             if e.ctx and e.ctx.parent
             else " (see 'mirage --help')"
         )
+        name = getattr(e, "option_name", None)
+        if isinstance(e, click.NoSuchOption) and e.ctx and e.ctx.parent and name in GLOBAL:
+            hint = (
+                f" ({name} is a global option: it goes before the command, "
+                f"'mirage {name} {e.ctx.info_name} ...')"
+            )
         _say(f"mirage: error: {e.format_message()}{hint}")
         return 2
     if isinstance(e, click.ClickException):

@@ -11,7 +11,7 @@ import yaml
 from . import ui
 from .cli_options import FOLDER, shown
 from .errors import InputError
-from .fileio import atomic_write, copy_file, ensure_dir
+from .fileio import atomic_write, copy_file, ensure_dir, refuse_overwrite
 from .synth import CALIB_BOARD, CALIB_SQUARE_M
 
 # the package is installed editable from the repository, which holds sample_data/
@@ -100,6 +100,10 @@ def demo_cmd(out, sample_data, overlay):
     src = find_sample_data(Path(sample_data) if sample_data else None)
     if Path(out).exists() and _same_dir(Path(out), src):
         raise InputError(f"--out {out} is the sample data folder; choose another folder")
+    written = ["desired_path.yaml", "orbit_truth.csv", "keyframes_poses.csv", "camera.yaml",
+               "landmark.mirage", "poses.csv", "report.csv", "summary.yaml", "report.png",
+               "overlay.mp4", "mirage.yaml"]  # fmt: skip
+    refuse_overwrite({"--out": [str(Path(out) / n) for n in written]}, {"--sample-data": str(src)})
     d = ensure_dir(out)
     t_all = time.perf_counter()
     # copies make the folder self-contained, so mirage.yaml can use plain names

@@ -3,18 +3,46 @@
 from __future__ import annotations
 
 import contextlib
+import fnmatch
+import glob
 import os
 import shutil
+import stat
 import tempfile
+from dataclasses import dataclass
+from dataclasses import field as dataclass_field
 from pathlib import Path
 
 from . import signals
 from .errors import EnvironmentFailure, InputError, OutputError
 
 
+def is_special(path: str | os.PathLike) -> bool:
+    """An existing output that is not a regular file or a folder: a character device
+    (/dev/null), a FIFO, a socket, /dev/stdout (through its link). Written through,
+    never replaced by a renamed temporary file."""
+    st = _stat(os.fspath(path))
+    return st is not None and not (stat.S_ISREG(st.st_mode) or stat.S_ISDIR(st.st_mode))
+
+
+def output_target(path: str | os.PathLike) -> Path:
+    """The file an output path writes: a symlink's target (so the link stays a link and
+    the file it points to is replaced atomically), else the path itself. Special files
+    keep the path given (/dev/stdout is a link into /proc)."""
+    p = Path(path)
+    if p.is_symlink() and not is_special(p):
+        return Path(os.path.realpath(p))
+    return p
+
+
 def check_writable(path: str | os.PathLike) -> Path:
     """Fail early, before hours of work, if `path` cannot be created."""
     p = Path(path)
+    if is_special(p):
+        if not os.access(p, os.W_OK):
+            raise OutputError(f"cannot write {p}: permission denied")
+        return p
+    p = output_target(p)
     parent = p.parent if str(p.parent) else Path(".")
     if p.is_dir():
         raise OutputError(f"output path {p} is a directory; give a file name")
@@ -72,14 +100,22 @@ def write_failure(path, e: OSError) -> EnvironmentFailure:
 
 
 def mkstemp_near(p: Path, suffix: str) -> tuple[int, Path]:
-    """A registered temporary file in the output's folder (so the rename is atomic)."""
+    """A registered temporary file in the output's folder (so the rename is atomic); for a
+    special file (/dev/null, a FIFO) in the temporary folder, since it is copied through."""
+    folder = tempfile.gettempdir() if is_special(p) else (p.parent or ".")
     with signals.deferred():  # a signal between creating and registering would leak it
         try:
-            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix, dir=p.parent or ".")
+            fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=suffix, dir=folder)
         except OSError as e:
             raise write_failure(p, e) from None
         register_temp(tmp)
     return fd, Path(tmp)
+
+
+def write_through(tmp: Path, p: Path) -> None:
+    """Copy a finished temporary file into a special file (device, FIFO, /dev/stdout)."""
+    with open(tmp, "rb") as src, open(p, "wb") as dst:
+        shutil.copyfileobj(src, dst)
 
 
 def _fsync(path: Path) -> None:
@@ -102,6 +138,7 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, verify=None)
     on every exit path.
     """
     p = check_writable(path)
+    special = is_special(p)
     suffix = p.suffix if suffix is None else suffix
     fd, tmp = mkstemp_near(p, f".tmp{suffix}")
     os.close(fd)
@@ -119,8 +156,11 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None, verify=None)
                 raise EnvironmentFailure(
                     f"cannot write {p}: the written file does not read back (disk full?)"
                 )
-        _fsync(tmp)
-        os.replace(tmp, p)
+        if special:
+            write_through(tmp, p)
+        else:
+            _fsync(tmp)
+            os.replace(tmp, p)
     except OSError as e:
         raise write_failure(p, e) from None
     finally:
@@ -161,37 +201,146 @@ def copy_file(src: str | os.PathLike, dest: str | os.PathLike) -> None:
 def _paths(value) -> list[str]:
     if value is None or value == "":
         return []
-    if isinstance(value, list | tuple):
-        return [str(v) for v in value if v not in (None, "")]
-    return [str(value)]
+    if isinstance(value, list | tuple | set):
+        return [s for v in value for s in _paths(v)]
+    return [str(getattr(value, "path", value))]  # a BagRef names its bag
 
 
-def _same_file(a: str, b: str) -> bool:
+_GLOB_CHARS = "*?["
+
+
+def _stat(p: str):
     try:
-        if os.path.exists(a) and os.path.exists(b):
-            return os.path.samefile(a, b)
-    except OSError:
-        pass
-    return os.path.realpath(a) == os.path.realpath(b)
+        return os.stat(p)
+    except (OSError, ValueError):
+        return None
+
+
+@dataclass
+class _Input:
+    """What one input option names: a file or folder (its real path and inode), or a glob
+    (its pattern and what it matches now)."""
+
+    name: str  # the option, e.g. 'INPUT' or '--truth'
+    given: str  # as the user wrote it
+    real: str
+    st: os.stat_result | None
+    pattern: str | None = None  # an absolute glob pattern
+    members: list = dataclass_field(default_factory=list)  # (real path, stat) it stands for
+
+    @classmethod
+    def of(cls, name: str, given: str) -> _Input:
+        p = os.path.expanduser(given)
+        st = _stat(p)
+        inp = cls(name, given, os.path.realpath(p), st)
+        if st is None and any(c in p for c in _GLOB_CHARS):
+            inp.pattern = os.path.abspath(p)
+            hits = glob.glob(p, recursive=True)
+            inp.members = [(os.path.realpath(h), _stat(h)) for h in hits]
+        elif st is not None and stat.S_ISDIR(st.st_mode):
+            inp.members = [(inp.real, st)]
+        return inp
+
+    def folders(self) -> list[tuple[str, os.stat_result]]:
+        """The folders this input names (a folder, a ROS 2 bag, a glob's folders)."""
+        items = [(self.real, self.st)] if self.pattern is None else self.members
+        return [(r, s) for r, s in items if s is not None and stat.S_ISDIR(s.st_mode)]
+
+    def files(self) -> list[tuple[str, os.stat_result | None]]:
+        """The files this input names, a folder's direct entries included (for inodes)."""
+        items = [(self.real, self.st)] if self.pattern is None else self.members
+        out = []
+        for r, s in items:
+            if s is not None and stat.S_ISDIR(s.st_mode):
+                with contextlib.suppress(OSError), os.scandir(r) as it:
+                    out += [(e.path, _stat(e.path)) for e in it]
+            else:
+                out.append((r, s))
+        return out
+
+
+class _Guard:
+    """Everything the inputs name, indexed once (by real path and by inode), so that
+    checking many outputs against many inputs (a campaign) stays cheap."""
+
+    def __init__(self, inputs: list[_Input]):
+        self.files: dict = {}  # real path or (dev, ino) -> input
+        self.folders: dict = {}
+        self.patterns = [i for i in inputs if i.pattern is not None]
+        for inp in inputs:
+            for r, s in inp.files():
+                self.files.setdefault(r, inp)
+                if s is not None:
+                    self.files.setdefault((s.st_dev, s.st_ino), inp)
+            for r, s in inp.folders():
+                self.folders.setdefault(r, inp)
+                self.folders.setdefault((s.st_dev, s.st_ino), inp)
+
+    def clash(self, out: str) -> tuple[str, _Input] | None:
+        """How writing `out` would touch an input (None: it would not)."""
+        o = os.path.expanduser(out)
+        real, st = os.path.realpath(o), _stat(o)
+        hit = self.files.get(real) or (st and self.files.get((st.st_dev, st.st_ino)))
+        if hit:
+            return "is the same file as", hit
+        parent = os.path.dirname(real)  # also a folder reached another way (bind mount)
+        while parent and parent != os.path.dirname(parent):
+            ps = _stat(parent)
+            hit = self.folders.get(parent) or (ps and self.folders.get((ps.st_dev, ps.st_ino)))
+            if hit:
+                return "is inside", hit
+            parent = os.path.dirname(parent)
+        for inp in self.patterns:
+            if fnmatch.fnmatch(os.path.abspath(o), inp.pattern) or fnmatch.fnmatch(
+                real, inp.pattern
+            ):
+                return "matches", inp
+        return None
+
+
+# Inputs every command reads besides its own options (the config file), set by the CLI.
+GUARDED_INPUTS: dict[str, str | None] = {}
 
 
 def refuse_overwrite(outputs: dict, inputs: dict) -> None:
-    """An output that is an input (or another output) would destroy data: refuse it.
+    """An output that is, or is inside, anything an input names, would destroy data: refuse.
 
     `outputs` and `inputs` map an option name (e.g. '-o', '--poses') to a path, a list of
-    paths or None. Compares by os.path.samefile where both exist (hard links, symlinks).
+    paths or None. An input may be a file, a folder (an output anywhere inside it is
+    refused), a glob (an output it matches, or inside a folder it matches) or a bag.
+    Compared by real path and by inode (symlinks, '..', hard links, bind mounts). Two
+    outputs that are the same file are refused too, unless it is a device or a FIFO
+    (`-o /dev/null --tum /dev/null` is fine).
     """
-    seen = [(name, p, "input") for name, v in inputs.items() for p in _paths(v)]
+    named = {**{k: v for k, v in GUARDED_INPUTS.items() if v}, **inputs}
+    guard = _Guard([_Input.of(name, p) for name, v in named.items() for p in _paths(v)])
+    done: dict = {}  # real path or inode of an output -> (option, path)
     for name, v in outputs.items():
         for o in _paths(v):
-            for other, p, kind in seen:
-                if _same_file(o, p):
-                    what = "overwrite the input" if kind == "input" else "be written twice"
+            found = guard.clash(o)
+            if found is not None:
+                how, inp = found
+                if how == "is the same file as":
                     raise InputError(
-                        f"{name} {o} is the same file as {other} {p}: it would {what}; "
-                        "choose another output name"
+                        f"{name} {o} is the same file as {inp.name} {inp.given}: it would "
+                        "overwrite the input; choose another output name"
                     )
-            seen.append((name, o, "output"))
+                raise InputError(
+                    f"{name} {o} {how} {inp.name} {inp.given}: it would write among the "
+                    "inputs; choose an output outside them"
+                )
+            real, st = os.path.realpath(os.path.expanduser(o)), _stat(os.path.expanduser(o))
+            keys = [real] + ([(st.st_dev, st.st_ino)] if st is not None else [])
+            if not is_special(o):
+                for k in keys:
+                    if k in done:
+                        other, p = done[k]
+                        raise InputError(
+                            f"{name} {o} is the same file as {other} {p}: it would be "
+                            "written twice; choose another output name"
+                        )
+            for k in keys:
+                done.setdefault(k, (name, o))
 
 
 def require_file(path: str | os.PathLike, what: str = "file") -> Path:
@@ -205,12 +354,49 @@ def require_file(path: str | os.PathLike, what: str = "file") -> Path:
     return p
 
 
+class _DuplicateKey(Exception):
+    def __init__(self, key, first: int, again: int):
+        super().__init__(key)
+        self.key, self.first, self.again = key, first, again
+
+
+_LOADER: list = []
+
+
+def _unique_keys_loader():
+    """yaml.SafeLoader that refuses a key given twice in one mapping (plain YAML keeps the
+    last silently: a config's first `track:` section would vanish)."""
+    if _LOADER:
+        return _LOADER[0]
+    import yaml
+
+    class UniqueKeys(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen: dict = {}
+            for key_node, _ in node.value:
+                if isinstance(key_node, yaml.ScalarNode):
+                    key = key_node.value
+                    line = key_node.start_mark.line + 1
+                    if key in seen and key != "<<":
+                        raise _DuplicateKey(key, seen[key], line)
+                    seen[key] = line
+            return super().construct_mapping(node, deep)
+
+    _LOADER.append(UniqueKeys)
+    return UniqueKeys
+
+
 def read_yaml(path: Path, what: str):
     """Parsed YAML of a user's file; bad syntax or a binary file is one clear line."""
     import yaml  # here, not at the top: `mirage --version` must not pay for it
 
     try:
-        return yaml.safe_load(Path(path).read_text())
+        return yaml.load(Path(path).read_text(), Loader=_unique_keys_loader())  # noqa: S506
+    except _DuplicateKey as e:
+        raise InputError(
+            f"{what} {path}: '{e.key}' appears twice (line {e.first} and line {e.again}); "
+            "YAML keeps only the last, so merge them into one"
+        ) from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""

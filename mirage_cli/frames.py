@@ -188,9 +188,23 @@ def name_times(paths: list[Path]) -> np.ndarray | None:
             return None
         times.append(float(p.stem) if m.group(2) else int(m.group(1)) / 1e9)
     t = np.array(times)
-    if len(t) and len(np.unique(t)) < len(t):
-        return None  # two images at one time: not a clock
+    if len(t) and len(np.unique(t)) < len(t):  # two images at one time: not a clock
+        _, first = np.unique(t, return_index=True)
+        dup = sorted(set(range(len(t))) - set(first.tolist()))[0]
+        twin = int(np.flatnonzero(t == t[dup])[0])
+        _warn(
+            f"images {paths[twin].name} and {paths[dup].name} have names giving the same "
+            f"time ({t[dup]:g} s): time_s is left empty for every frame; rename them or "
+            "give --fps"
+        )
+        return None
     return t
+
+
+def _warn(text: str) -> None:
+    from . import ui
+
+    ui.log.warning(text)
 
 
 class FrameSource:
@@ -271,7 +285,17 @@ class FrameSource:
         if every < 1:
             raise InputError(f"frame step must be >= 1, got {every}")
         if self.bag is not None:
+            last, warned = None, False  # (index, stamp) of the previous message
             for i, t, img in bags.image_frames(self.bag, start, end, every, gray):
+                if last is not None and t == last[1] and not warned:
+                    warned = True
+                    _warn(
+                        f"{self.bag.topic} in {self.bag.path}: messages {last[0]} and {i} have "
+                        f"the same header stamp {t:.6f} s; their rows share one time_s, so "
+                        "matching them to truth by time (TUM, report --truth) cannot tell "
+                        "them apart"
+                    )
+                last = (i, t)
                 yield Frame(i, i, t, img)
             return
         if self.video is not None:

@@ -121,15 +121,30 @@ class PolylinePath:
         n = len(P)
         seg = np.zeros(n, dtype=int)
         u = np.zeros(n)
+        seglen = np.linalg.norm(B - A, axis=1)
+        start = self.cum_s[:-1]
+        ties: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frame -> (segments, t)
         for lo in range(0, n, chunk):  # chunks bound the (frames x segments) memory
             Q = P[lo : lo + chunk, None, :2] - A[None, :, :2]
             t = np.clip(np.einsum("fsk,sk->fs", Q, d2) / np.where(usable, L2, 1.0), 0.0, 1.0)
             r = Q - t[..., None] * d2[None]
-            dist = np.einsum("fsk,fsk->fs", r, r)
+            dist = np.nan_to_num(np.einsum("fsk,fsk->fs", r, r), nan=np.inf)
             dist[:, ~usable] = np.inf
-            k = np.argmin(np.nan_to_num(dist, nan=np.inf), axis=1)
+            k = np.argmin(dist, axis=1)
             seg[lo : lo + chunk] = k
             u[lo : lo + chunk] = t[np.arange(len(k)), k]
+            # a path that passes the same place again (laps): equally near points of
+            # several passes, which the arc length must choose between (below)
+            dmin = np.sqrt(dist[np.arange(len(k)), k])
+            same = dist <= ((dmin + SAME_PLACE_M) ** 2)[:, None]
+            s_all = np.where(same, start[None] + t * seglen[None], np.nan)
+            with np.errstate(invalid="ignore"):
+                spread = np.nanmax(s_all, axis=1) - np.nanmin(s_all, axis=1)
+            for f in np.flatnonzero(np.isfinite(dmin) & (spread > SAME_PLACE_M)):
+                cols = np.flatnonzero(same[f])
+                ties[lo + int(f)] = (cols, t[f, cols])
+        if ties:
+            seg, u = self._pass_of_each_tie(ties, seg, u, seglen, time_s)
         near = A[seg] + u[:, None] * (B - A)[seg]
         s = self.cum_s[seg] + u * np.linalg.norm((B - A)[seg], axis=1)
         dirs = d2[seg] / np.sqrt(np.where(usable[seg], L2[seg], 1.0))[:, None]
@@ -152,6 +167,28 @@ class PolylinePath:
         return PathErrors(
             s, near, cross, P[:, 2] - near[:, 2], _heading_err(yaw_deg, desired), along
         )
+
+    def _pass_of_each_tie(self, ties, seg, u, seglen, time_s):
+        """Frames equally near several passes of the path (a path of two laps): the pass
+        whose arc length the timing expects (timed paths), else the one nearest the
+        previous frame's (so the along-path distance does not jump by a lap)."""
+        start = self.cum_s[:-1]
+        expected = None
+        if self.timed and time_s is not None:
+            expected = np.interp(np.asarray(time_s, float), self.time_s, self.cum_s)
+        seg, u = seg.copy(), u.copy()
+        prev = None
+        for i in range(len(seg)):
+            if i in ties:
+                cols, t = ties[i]
+                cand = start[cols] + t * seglen[cols]
+                ref = expected[i] if expected is not None and np.isfinite(expected[i]) else prev
+                j = int(np.argmin(np.abs(cand - ref))) if ref is not None else int(np.argmin(cand))
+                seg[i], u[i] = cols[j], t[j]
+            s_i = start[seg[i]] + u[i] * seglen[seg[i]]
+            if np.isfinite(s_i):
+                prev = s_i
+        return seg, u
 
     def sample(self, n: int = 0) -> np.ndarray:
         return self.points_m
@@ -186,7 +223,20 @@ def load_path(path) -> Path_:
     return path_from_dict(data, str(p))
 
 
+PATH_KEYS = ("type", "center_m", "radius_m", "height_m", "direction", "look_at_m", "heading",
+             "start_deg", "points_m", "waypoints_m", "time_s")  # fmt: skip
+SAME_PLACE_M = 1e-6  # m: passes of a path this close are one place (laps over each other)
+MAX_M = 1.0e7  # m: any coordinate or radius beyond is a unit mix-up (the Earth is 6.4e6 m)
+
+
 def path_from_dict(data: dict, where: str = "path") -> Path_:
+    import difflib
+
+    for k in data:
+        if str(k) not in PATH_KEYS:
+            close = difflib.get_close_matches(str(k), PATH_KEYS, n=1, cutoff=0.6)
+            hint = f"did you mean '{close[0]}'?" if close else f"valid keys: {', '.join(PATH_KEYS)}"
+            raise InputError(f"{where}: unknown key '{k}' ({hint})")
     kind = str(data.get("type", "")).strip().lower()
     if kind not in PATH_TYPES:
         got = data.get("type")
@@ -247,6 +297,8 @@ def _polyline(pts: np.ndarray, times, look, where: str) -> PolylinePath:
         raise InputError(f"{where}: a polyline needs at least 2 waypoints, got {len(pts)}")
     if not np.isfinite(pts).all():
         raise InputError(f"{where}: waypoints must be finite numbers")
+    if (np.abs(pts) > MAX_M).any():
+        raise InputError(f"{where}: waypoints beyond {MAX_M:g} m (metres expected)")
     seg = np.linalg.norm(np.diff(pts[:, :2], axis=0), axis=1)
     if not (seg > 0).any():
         raise InputError(f"{where}: all waypoints have the same x, y; the path has no direction")
@@ -278,6 +330,8 @@ def _num(data: dict, key: str, where: str, default=None, required=False) -> floa
         raise InputError(f"{where}: {key} must be a number, got {data[key]!r}") from None
     if not np.isfinite(v):
         raise InputError(f"{where}: {key} must be finite")
+    if key.endswith("_m") and abs(v) > MAX_M:
+        raise InputError(f"{where}: {key} {v:g} is beyond {MAX_M:g} m (metres expected)")
     return v
 
 
@@ -289,4 +343,6 @@ def _vec(value, sizes: tuple[int, ...], key: str, where: str) -> np.ndarray:
     if len(v) not in sizes or not np.isfinite(v).all():
         want = " or ".join(str(s) for s in sizes)
         raise InputError(f"{where}: {key} must be {want} finite numbers, got {value!r}")
+    if key != "time_s" and (np.abs(v) > MAX_M).any():
+        raise InputError(f"{where}: {key} {value!r} is beyond {MAX_M:g} m (metres expected)")
     return v

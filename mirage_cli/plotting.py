@@ -28,7 +28,35 @@ if TYPE_CHECKING:
     from .trajectory import FrameRecord
 
 
+def import_matplotlib():
+    """matplotlib, imported once. It validates $MPLBACKEND on import (a bad value is a
+    ValueError); mirage draws PNGs with Agg and never uses a backend, so a bad value is a
+    warning and is dropped for this process."""
+    import os
+    import sys
+
+    if "matplotlib" in sys.modules:
+        return sys.modules["matplotlib"]
+    try:
+        import matplotlib
+    except ValueError as e:
+        backend = os.environ.pop("MPLBACKEND", None)
+        if backend is None or "backend" not in str(e).lower():
+            raise
+        from . import ui
+
+        ui.log.warning(
+            f"MPLBACKEND={backend!r} is not a matplotlib backend; ignored (mirage writes "
+            "PNGs with Agg)"
+        )
+        for name in [m for m in sys.modules if m == "matplotlib" or m.startswith("matplotlib.")]:
+            del sys.modules[name]
+        import matplotlib
+    return matplotlib
+
+
 def _figure(**kw) -> Figure:
+    import_matplotlib()
     from matplotlib.figure import Figure
 
     return Figure(**kw)
@@ -44,6 +72,15 @@ def save_png(fig: Figure, path, dpi: int, **kw) -> None:
 # mirage report
 # --------------------------------------------------------------------------------------
 REPORT_DPI = 100
+
+
+# what a positive error means, under each signed axis's name (the report's conventions)
+SIGN_NOTES = {
+    "cross_track_m": "\n+ left of path",
+    "height_error_m": "\n+ above path",
+    "heading_error_deg": "\n+ turned left (ccw)",
+    "along_track_m": "\n+ ahead of time",
+}
 
 
 def report_figure(rep: Report, path: Path_) -> Figure:
@@ -98,9 +135,12 @@ def report_figure(rep: Report, path: Path_) -> Figure:
         a = fig.add_subplot(gs[i, 1])
         a.plot(t, tab[c].to_numpy(float), "-", lw=1)
         a.axhline(0, color="k", lw=0.5)
-        for j0, j1 in lost_runs:
-            a.axvspan(t[j0] - 0.5 * step, t[j1 - 1] + 0.5 * step, color="tab:red", alpha=0.12)
-        a.set_ylabel(c.replace("_", " "), fontsize=8)
+        for n, (j0, j1) in enumerate(lost_runs):
+            a.axvspan(t[j0] - 0.5 * step, t[j1 - 1] + 0.5 * step, color="tab:red", alpha=0.12,
+                      label="not tracked" if n == 0 else None)  # fmt: skip
+        if i == 0 and lost_runs:
+            a.legend(fontsize=7, loc="upper right")
+        a.set_ylabel(c.replace("_", " ") + SIGN_NOTES.get(c, ""), fontsize=8)
         a.grid(alpha=0.3)
         if i == len(err_cols) - 1:
             a.set_xlabel(xlabel)
@@ -157,7 +197,7 @@ CALIBRATION_DPI = 110
 
 def calibration_figure(c: Calibration) -> Figure:
     """Corner coverage over the image (rejected views as red crosses) and per-view RMS."""
-    import matplotlib
+    matplotlib = import_matplotlib()
     from matplotlib.patches import Rectangle
 
     w, h = c.image_size
@@ -222,4 +262,22 @@ def draw_overlay(img: np.ndarray, res: FrameRecord, camera: Camera, axis_m: floa
     (w, h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 2)
     cv2.rectangle(out, (4, 4), (16 + w, 16 + h), (0, 0, 0), -1)
     cv2.putText(out, text, (10, 10 + h), cv2.FONT_HERSHEY_SIMPLEX, 0.6, color, 2, cv2.LINE_AA)
+    stamp = _frame_stamp(res)
+    if stamp:  # bottom left: which frame of the video this is, to find it in the CSV
+        (w, h), _ = cv2.getTextSize(stamp, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+        y1 = out.shape[0] - 4
+        cv2.rectangle(out, (4, y1 - 12 - h), (16 + w, y1), (0, 0, 0), -1)
+        cv2.putText(out, stamp, (10, y1 - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1,
+                    cv2.LINE_AA)  # fmt: skip
     return out
+
+
+def _frame_stamp(res) -> str:
+    """'frame 42  1.400 s' (the CSV's frame and time_s), or '' when the record has none."""
+    frame, t = getattr(res, "frame", None), getattr(res, "time_s", None)
+    if frame is None or frame == "":
+        return ""
+    text = f"frame {frame}"
+    if t is not None and np.isfinite(t):
+        text += f"  {t:.3f} s"
+    return text

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import click
 import numpy as np
 import yaml
@@ -124,18 +126,33 @@ def report_cmd(
     """
     refuse_overwrite(
         {"-o": output, "--summary": summary, "--plot": plot},
-        {"POSES": poses, "--path": path, "--truth": truth},
+        {
+            "POSES": poses,
+            "--path": path,
+            "--truth": truth,
+            # a file holding the transform (a literal '0 0 0 1 0 0 0' names no file)
+            "--truth-transform": truth_transform
+            if truth_transform and os.path.exists(os.path.expanduser(truth_transform))
+            else None,
+        },
     )
     for out in (output, summary, plot):
         if out:
             check_writable(out)
-    desired = load_path(path)
-    table = read_pose_csv(poses)
+    with ui.stage("read the path and the poses"):
+        desired = load_path(path)
+        table = read_pose_csv(poses)
+    ui.detail(f"path: {type(desired).__name__}, {desired.length_m:.3f} m long")
+    ui.detail(f"poses: {len(table)} frames, {(table['status'] == 'ok').sum()} ok")
     settings = TruthSettings(truth_topic, BodyToCamera.parse(truth_transform), t_offset, t_max_diff)
     if not truth and (truth_topic or truth_transform or t_offset):
         raise InputError("--truth-topic, --truth-transform and --t-offset need --truth FILE")
-    truth_df = load_truth(truth, table, settings) if truth else None
-    publish_report(make_report(table, desired, truth_df), desired, output, summary, plot)
+    with ui.stage("read the truth"):
+        truth_df = load_truth(truth, table, settings) if truth else None
+    with ui.stage("compute the errors"):
+        rep = make_report(table, desired, truth_df)
+    with ui.stage("write the outputs"):
+        publish_report(rep, desired, output, summary, plot)
 
 
 def publish_report(rep: Report, desired, output, summary=None, plot=None) -> None:

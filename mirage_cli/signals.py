@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import sys
 
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
-_state = {"deferring": 0, "pending": None}
+_state = {"deferring": 0, "pending": None, "raised": None}
 
 
 class Terminated(KeyboardInterrupt):
@@ -30,11 +31,40 @@ def _handler(signum, frame):
     if _state["deferring"]:
         _state["pending"] = _state["pending"] or signum
         return
+    _state["raised"] = signum  # until `check` or the CLI's top level sees it
     raise _exception(signum)
+
+
+def check() -> None:
+    """Raise a signal whose exception never surfaced: a compiled-code callback (numba's
+    cache, llvmlite through ctypes) prints and drops an exception raised inside it, and
+    the run would go on to finish and exit 0. Called where no interrupt can have been
+    handled yet in this run (after the compiled code loads, before each frame), so a
+    signal seen here was swallowed."""
+    signum, _state["raised"] = _state["raised"], None
+    if signum:
+        raise _exception(signum)
+
+
+def seen() -> None:
+    """The interrupt reached the top level (or a caller that handles it): nothing pending."""
+    _state["raised"] = None
+
+
+def _unraisable(unraisable) -> None:
+    """Our interrupt raised inside a callback that cannot propagate it (a ctypes callback,
+    a finaliser) is not printed as 'Exception ignored in ...': `check` raises it again
+    where it can end the run. Anything else goes to Python's own hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        return
+    sys.__unraisablehook__(unraisable)
 
 
 def install() -> None:
     """Both signals raise; safe to call more than once (main thread only)."""
+    _state.update(deferring=0, pending=None, raised=None)
+    if sys.unraisablehook is sys.__unraisablehook__:
+        sys.unraisablehook = _unraisable
     with contextlib.suppress(ValueError):  # not the main thread: leave the handlers alone
         signal.signal(signal.SIGINT, _handler)
         signal.signal(signal.SIGTERM, _handler)

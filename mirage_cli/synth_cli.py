@@ -28,6 +28,8 @@ from .render import Renderer, stable_rng
 from .trajectory import FrameRecord, Status, write_trajectory
 from .validate import BoundedInt, FiniteFloat, float_list
 
+MAX_SIDE = 8192  # px: an 8K frame; larger renders exhaust memory (rays per pixel)
+
 PARTS = ("calibration", "keyframes", "orbit")
 
 _worker: dict = {}
@@ -68,8 +70,12 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 @click.argument("outdir", type=FOLDER)
 @shown("--seed", type=BoundedInt(min=0), default=0, help="Random seed.")
 @camera_option("Camera YAML to render with (default: a 640x480 webcam with distortion).")
-@click.option("--width", type=BoundedInt(min=16), help="Image width (scales the camera).")
-@click.option("--height", type=BoundedInt(min=16), help="Image height.")
+@click.option(
+    "--width",
+    type=BoundedInt(min=16, max=MAX_SIDE),
+    help="Image width (scales the camera).",
+)
+@click.option("--height", type=BoundedInt(min=16, max=MAX_SIDE), help="Image height.")
 @shown(
     "--only",
     default=",".join(PARTS),
@@ -82,7 +88,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     default=synth.CALIB_SQUARE_M,
     help="Chessboard square size (m).",
 )
-@shown("--calib-views", type=BoundedInt(min=1), default=20)
+@shown("--calib-views", type=BoundedInt(min=1, max=1000), default=20)
 @shown(
     "--keyframe-step",
     type=FiniteFloat(min=1, max=180),
@@ -116,7 +122,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @shown(
     "--exposure",
-    type=click.FloatRange(min=0, max=1, min_open=True),
+    type=FiniteFloat(min=0, max=1, min_open=True),
     default=0.5,
     help="Shutter time as a share of the frame interval (the span --motion-blur averages).",
 )
@@ -134,7 +140,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @click.option(
     "--floor-tiles",
-    type=click.FloatRange(min=0.05),
+    type=FiniteFloat(min=0.05),
     metavar="PERIOD_M",
     help="Stress: the ground is one texture tile repeated every PERIOD_M metres (floor "
     "features have exact twins one period apart).",
@@ -153,7 +159,7 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @shown(
     "--video-radius",
-    type=click.FloatRange(min=0.8),
+    type=FiniteFloat(min=0.8),
     default=default_of(synth.OrbitPath, "radius_m"),
     help="Orbit video circle radius (m); the keyframes keep --radius.",
 )
@@ -165,15 +171,15 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
 )
 @shown(
     "--turns",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloat(min=0, min_open=True),
     default=default_of(synth.OrbitPath, "turns"),
     help="Orbit video: turns around the landmark over --duration (sets the speed).",
 )
 @click.option(
     "--look-away",
     metavar="SECONDS|START,END",
-    help="The look-away stretch: its length (starting at 78%% of the video; 0 = none) or its "
-    "start and end times in seconds. Default: min(2.2 s, 11%% of the video) at 78%%.",
+    help="The look-away stretch: its length (starting at 78% of the video; 0 = none) or its "
+    "start and end times in seconds. Default: min(2.2 s, 11% of the video) at 78%.",
 )
 def synth_cmd(
     outdir,
@@ -230,6 +236,11 @@ def synth_cmd(
     if width or height:
         w = width or round(cam.width * height / cam.height)
         h = height or round(cam.height * width / cam.width)
+        if max(w, h) > MAX_SIDE:
+            raise click.BadParameter(
+                f"the image would be {w}x{h}; at most {MAX_SIDE} px a side",
+                param_hint="'--width' / '--height'",
+            )
         cam = cam.scaled(w, h)
     if camera_path:
         refuse_overwrite({"OUTDIR": Path(outdir) / "camera_truth.yaml"}, {"--camera": camera_path})

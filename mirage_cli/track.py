@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from . import signals
 from .camera import Camera
 from .evidence import chance_inlier_probability, is_evidence, search_area
 from .features import detect, guided_match, make_detector, to_gray
@@ -652,6 +653,8 @@ class Tracker:
         if front.sum() < self.s.min_inliers:
             return None
         uv = self.camera.project(X[front], pred)
+        if not np.isfinite(uv).all():  # points far off-axis: the distortion has no image
+            return None  # (what the NaN box came to before, without numpy's warning)
         h, w = shape[:2]
         m = self.s.detect_margin_px
         lo, hi = np.percentile(uv, [1, 99], axis=0)  # one partition for both
@@ -917,6 +920,7 @@ def run(
         return rec
 
     for f in frames:
+        signals.check()  # a signal a compiled-code callback swallowed: the interrupt now
         gray = None
         if f.image is not None:
             gray = to_gray(f.image)

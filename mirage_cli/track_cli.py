@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import time
 from pathlib import Path
 
@@ -20,7 +21,7 @@ from .cli_options import (
     shown,
     topic_option,
 )
-from .errors import InputError, NothingFound, OutputError
+from .errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from .fileio import (
     atomic_path,
     check_writable,
@@ -90,7 +91,7 @@ def also_write_options(f):
 )
 @shown(
     "--min-inliers",
-    type=BoundedInt(min=4),
+    type=BoundedInt(min=4, max=100_000),
     default=TrackSettings.min_inliers,
     help="Fewest inliers of a pose found without a prediction (while tracking: 6, and the "
     "pose's uncertainty decides).",
@@ -145,8 +146,12 @@ def track_cmd(
     if rerun_path:
         rerun_module()  # without the [viz] extra: one line now, not after the tracking
         check_room(rerun_path)
-    model = LandmarkModel.load(require_file(model_path, "model file"))
-    src = FrameSource(with_topic(video, topic), fps=fps)
+    with ui.stage("load model"):
+        model = LandmarkModel.load(require_file(model_path, "model file"))
+    ui.detail(f"model {model_path}: {len(model.keyframes)} keyframes, {len(model.points)} points")
+    with ui.stage("open input"):
+        src = FrameSource(with_topic(video, topic), fps=fps)
+    ui.detail(f"input: {src.count or 'unknown'} frames at {src.fps:g} frames/s")
     camera = tracking_camera(model, camera_path, src)
     first, last = frame_range(start, end, src.fps)  # an empty range fails before any output
     if src.count == 0 and src.is_video:
@@ -214,7 +219,14 @@ def track_to_files(
     on (exit 130 / 143)."""
     if not refine.cached_on_disk():
         ui.echo("compiling the pose solver for this machine (first run only, about 10 s)")
-    warm_up()  # compile or load it before the first frame's clock starts
+    # compile or load it before the first frame's clock starts; loading from the cache
+    # (under a second) runs numba's callbacks, which would swallow a signal: held meanwhile
+    with (
+        ui.stage("load the compiled solver"),
+        signals.deferred() if refine.cached_on_disk() else contextlib.nullcontext(),
+    ):
+        warm_up()
+    signals.check()
     runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
     points = tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
@@ -224,7 +236,11 @@ def track_to_files(
         src, tracker, outputs, tracker.camera, first, last, every, overlay, axis_m, rerun,
         smoother,
     )  # fmt: skip
+    ui.detail(f"stage tracking: {stats['elapsed']:.2f} s")
     _summary(stats, output)
+    if ui.verbose():
+        for line in refusal_lines(stats["records"]):
+            ui.detail(line)
     if rerun:
         ui.echo(f"       Rerun recording {rerun} (view it with: rerun {rerun})")
     if stats["interrupted"] is not None:
@@ -242,6 +258,8 @@ def _track(
     if src.count:
         total = len(range(first, min(src.count, last) if last else src.count, every))
     done: list[tuple[str, int]] = []  # (status, inliers) per frame, for the summary
+    decided: list[tuple] = []  # with -v: (frame, status, keyframe, inliers, matches, mode)
+    verbose = ui.verbose()
     interrupted = None
     t_start = time.perf_counter()
     with contextlib.ExitStack() as hold, contextlib.ExitStack() as stack:
@@ -261,13 +279,20 @@ def _track(
 
         def emit(records):
             for rec in records:
-                for w in writers:
-                    w.write(rec)
-                if rrd is not None:  # before the overlay, which takes the image
-                    rrd.write(rec)
-                if ov is not None:
-                    ov.write(rec)
-                done.append((rec.status, rec.inliers))
+                # a record goes to every output or to none: a signal waits until it is out
+                # (else the overlay could hold a frame fewer than the CSV)
+                with signals.deferred():
+                    for w in writers:
+                        w.write(rec)
+                    if rrd is not None:  # before the overlay, which takes the image
+                        rrd.write(rec)
+                    if ov is not None:
+                        ov.write(rec)
+                    done.append((rec.status, rec.inliers))
+                    if verbose:
+                        decided.append((rec.frame, str(rec.status), rec.keyframe, rec.inliers,
+                                        rec.matches, rec.mode))  # fmt: skip
+                        ui.detail(frame_line(rec), 2)
                 if len(done) % 10 == 0:
                     rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
                     bar.update(10, f"{rate:.0f} frames/s")
@@ -289,7 +314,40 @@ def _track(
     elapsed = time.perf_counter() - t_start
     if interrupted is not None:
         signals.note(interrupted, f"kept {writers[0].rows} frames in {outputs[0][0]}")
-    return {"rows": done, "elapsed": elapsed, "interrupted": interrupted}
+    return {"rows": done, "elapsed": elapsed, "interrupted": interrupted, "records": decided}
+
+
+def frame_line(rec) -> str:
+    """-vv: one line per frame, what was decided and from what."""
+    why = f" ({rec.mode})" if getattr(rec, "mode", None) else ""
+    kf = f", keyframe {rec.keyframe}" if getattr(rec, "keyframe", None) else ""
+    return (
+        f"frame {rec.frame}: {rec.status}{why}{kf}, {rec.inliers or 0} inliers of "
+        f"{rec.matches or 0} matches"
+    )
+
+
+def refusal_lines(records) -> list[str]:
+    """-v after a run: the frames not ok by reason, and the keyframes poses came from."""
+    from collections import Counter
+
+    out = []
+    refused = Counter(r[1] for r in records if r[1] != Status.OK.value)
+    for status, n in refused.most_common():
+        frames = [str(r[0]) for r in records if r[1] == status]
+        shown_ = ", ".join(frames[:8]) + (", ..." if len(frames) > 8 else "")
+        inl = [r[3] or 0 for r in records if r[1] == status]
+        out.append(
+            f"refused {n} frame(s) as {status} (median {np.median(inl):.0f} inliers): {shown_}"
+        )
+    kfs = Counter(r[2] for r in records if r[1] == Status.OK.value and r[2])
+    if kfs:
+        top = ", ".join(f"{k} ({n})" for k, n in kfs.most_common(5))
+        out.append(f"keyframes of the ok frames (most used): {top}")
+    modes = Counter(r[5] for r in records if r[5])
+    if modes:
+        out.append("modes: " + ", ".join(f"{m} {n}" for m, n in modes.most_common()))
+    return out
 
 
 class _Overlay:
@@ -298,7 +356,13 @@ class _Overlay:
     def __init__(self, path, fps: float, camera, axis_m: float):
         # VideoWriter reports no write error: the video must read back with its frames (one
         # of slack: a signal can land between writing a frame and counting it)
-        self._path = atomic_path(path, verify=lambda p: video_frames_written(p) >= self.n - 1)
+        # (no suffix, e.g. /dev/null: an .mp4 temporary file, so that OpenCV picks a container)
+        self._path = atomic_path(
+            path,
+            suffix=Path(path).suffix or ".mp4",
+            verify=lambda p: video_frames_written(p) >= self.n - 1,
+        )
+        self.path = path
         self.fps, self.camera, self.axis_m = fps, camera, axis_m
         self.writer, self.n = None, 0
 
@@ -318,7 +382,7 @@ class _Overlay:
                 (img.shape[1], img.shape[0]),
             )
             if not self.writer.isOpened():
-                raise OutputError("cannot write the overlay video (mp4v)")
+                raise overlay_failure(self.path, self.tmp)
         self.writer.write(draw_overlay(img, rec, self.camera, self.axis_m))
         self.n += 1
 
@@ -326,6 +390,16 @@ class _Overlay:
         if self.writer is not None:
             self.writer.release()
         return self._path.__exit__(*exc)
+
+
+def overlay_failure(path, tmp) -> OutputError | EnvironmentFailure:
+    """Why the overlay video did not open, naming the file: a full disk is the machine's
+    failure (exit 1), anything else the output's (exit 2)."""
+    with contextlib.suppress(OSError):
+        fs = os.statvfs(Path(tmp).parent)
+        if fs.f_bavail * fs.f_frsize < (1 << 20):
+            return EnvironmentFailure(f"cannot write {path}: no space left on device")
+    return OutputError(f"cannot write the overlay video {path} (OpenCV's mp4v writer did not open)")
 
 
 def _summary(stats: dict, out: Path) -> None:

@@ -26,6 +26,7 @@ from .errors import InputError
 from .fileio import (
     check_writable,
     forget_temp,
+    is_special,
     mkstemp_near,
     read_csv,
     require_file,
@@ -219,9 +220,16 @@ class TrajectoryWriter:
         self.format = FORMATS[fmt]
         self.extra = list(extra_columns)
         self.rows = 0
-        fd, self.tmp = mkstemp_near(self.path, ".partial")
-        os.chmod(self.tmp, 0o644)
-        self._f = os.fdopen(fd, "w", newline="")
+        if is_special(self.path):  # /dev/null, a FIFO, /dev/stdout: rows go straight there
+            self.tmp = None
+            try:
+                self._f = open(self.path, "w", newline="")  # noqa: SIM115
+            except OSError as e:
+                raise write_failure(self.path, e) from None
+        else:
+            fd, self.tmp = mkstemp_near(self.path, ".partial")
+            os.chmod(self.tmp, 0o644)
+            self._f = os.fdopen(fd, "w", newline="")
         self._guard(lambda: (self._f.write(self.format.header(self.extra)), self._f.flush()))
 
     def _guard(self, fn) -> None:
@@ -241,6 +249,8 @@ class TrajectoryWriter:
     def _discard(self) -> None:
         with contextlib.suppress(OSError):
             self._f.close()
+        if self.tmp is None:
+            return
         with contextlib.suppress(OSError):
             self.tmp.unlink()
         forget_temp(self.tmp)
@@ -248,7 +258,7 @@ class TrajectoryWriter:
     def close(self, keep: bool = True) -> None:
         if self._f.closed:
             return
-        if not keep or self.rows == 0:
+        if not keep or self.rows == 0 or self.tmp is None:
             self._discard()
             return
 
@@ -357,6 +367,15 @@ def read_pose_csv(path, require_pose: bool = True) -> pd.DataFrame:
     if "status" not in df.columns:
         df["status"] = Status.OK.value
     df["status"] = df["status"].str.strip().replace("", Status.OK.value)
+    words = {s.value for s in Status}
+    unknown = ~df["status"].isin(words)
+    if unknown.any():  # a word of another tool's ('OK', 'good'): its frames would be dropped
+        i = int(np.flatnonzero(unknown.to_numpy())[0])
+        raise InputError(
+            f"pose file {p}: column 'status' row {i + 2} (frame {df['frame'].iloc[i]}) is "
+            f"{df['status'].iloc[i]!r}; expected one of {', '.join(s.value for s in Status)} "
+            "(or empty: ok)"
+        )
     ok = df["status"] == Status.OK
     for col in ["time_s"] + REQUIRED_INPUT:
         if col not in df.columns:

@@ -54,6 +54,14 @@ class BodyToCamera:
             v = np.array([float(w) for w in src.replace(",", " ").split()])
         except ValueError:
             v = np.array([])
+            looks_like_file = not any(c.isspace() or c == "," for c in src) and (
+                "/" in src or "\\" in src or Path(src).suffix != ""
+            )
+            if where == "--truth-transform" and looks_like_file and not p.exists():
+                raise InputError(
+                    f"--truth-transform file {src} not found (or give the transform itself: "
+                    "'x y z qw qx qy qz')"
+                ) from None
         if v.size != 7 or not np.isfinite(v).all():
             raise InputError(
                 f"{where}: expected 7 numbers 'x y z qw qx qy qz' (T_body_camera, metres), "

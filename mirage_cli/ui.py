@@ -40,6 +40,27 @@ def setup(verbose: int = 0, quiet: bool = False) -> None:
         pass
 
 
+def detail(msg: str, level: int = 1) -> None:
+    """A line for -v (level 1: stages, timings, refusals) or -vv (level 2: every frame),
+    on stderr so that it never mixes with data written to standard output."""
+    if _state["verbose"] >= level and not _state["quiet"]:
+        log.info(msg)
+
+
+def verbose(level: int = 1) -> bool:
+    return _state["verbose"] >= level and not _state["quiet"]
+
+
+@contextlib.contextmanager
+def stage(name: str):
+    """Time a stage of a command; -v prints 'stage NAME: 1.23 s'."""
+    import time
+
+    t0 = time.perf_counter()
+    yield
+    detail(f"stage {name}: {time.perf_counter() - t0:.2f} s")
+
+
 def echo(msg: str = "") -> None:
     """A line of the human-readable summary (stdout; suppressed by --quiet)."""
     if not _state["quiet"]:

@@ -24,10 +24,21 @@ if TYPE_CHECKING:  # pandas loads when a table is read, not with `mirage track`
 QUAT_TOL = 0.01  # |norm - 1| up to this is rounding in a hand-written file: normalised
 
 
+def _describe(rng) -> str:
+    """click's range text for --help, or nothing without bounds (click would print
+    '[x<=None]')."""
+    if rng.min is None and rng.max is None:
+        return ""
+    return click.types._NumberRangeBase._describe_range(rng)
+
+
 class FiniteFloat(click.FloatRange):
     """A finite float within optional bounds (NaN and +-inf are refused with one line)."""
 
     name = "number"
+
+    def _describe_range(self) -> str:
+        return _describe(self)
 
     def convert(self, value, param, ctx):
         if isinstance(value, bool) or isinstance(value, list | dict | tuple):
@@ -42,6 +53,9 @@ class BoundedInt(click.IntRange):
     """An integer within bounds; refuses floats with a fraction and lists from a config."""
 
     name = "integer"
+
+    def _describe_range(self) -> str:
+        return _describe(self)
 
     def convert(self, value, param, ctx):
         if isinstance(value, bool) or isinstance(value, list | dict | tuple):

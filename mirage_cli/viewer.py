@@ -34,7 +34,7 @@ from .fileio import atomic_path, write_failure
 from .model import LandmarkModel
 from .trajectory import FrameRecord
 
-RERUN_MISSING = "--rerun needs rerun-sdk: pip install 'mirage-cli[viz]'"
+RERUN_MISSING = "--rerun needs rerun-sdk: pip install -e '.[viz]' in the mirage-cli checkout"
 APP_ID = "mirage"
 JPEG_QUALITY = 80  # 640x480 frames: ~40 kB instead of 900 kB raw
 TRAJECTORY_BLOCK = 100  # poses per trajectory entity

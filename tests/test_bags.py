@@ -462,3 +462,18 @@ def test_bad_truth_options_are_one_line_errors(opts, message, tmp_path):
                        poses, *opts, "-o", tmp_path / "r.csv")  # fmt: skip
     assert_error(code, err, message)
     assert not (tmp_path / "r.csv").exists()
+
+
+def test_frames_with_one_header_stamp_warn(orbit, tmp_path, caplog):
+    """Two image messages with the same header stamp (a driver that stamps at the trigger,
+    a re-recorded bag): their rows share a time_s, which time matching cannot tell apart,
+    so reading them warns once, naming both messages (issue 30)."""
+    path = bag_path(tmp_path, "dup", "ros1")
+    with BagWriter(path, "ros1") as w:
+        for i, t in enumerate([0.0, 1 / 30, 1 / 30, 3 / 30]):
+            w.image(IMG, T0 + t, orbit[i], "bgr8")
+    with caplog.at_level("WARNING", logger="mirage"):
+        frames = list(FrameSource([path]).frames(0, None, 1))
+    assert len(frames) == 4
+    warned = [r.getMessage() for r in caplog.records if "same header stamp" in r.getMessage()]
+    assert len(warned) == 1 and "messages 1 and 2" in warned[0], caplog.text

@@ -182,7 +182,8 @@ def test_scheduler_without_distributed_is_one_line(campaign, tmp_path, capsys, m
     monkeypatch.setitem(sys.modules, "distributed", None)  # import fails
     code, _, err = batch(capsys, campaign, "--scheduler", "tcp://127.0.0.1:1", "--out", tmp_path)
     assert code == 2
-    assert "needs distributed: pip install 'mirage-cli[batch]'" in one_error_line(err)
+    want = "needs distributed: pip install -e '.[batch]' in the mirage-cli checkout"
+    assert want in one_error_line(err)
 
 
 def test_campaign_file_globs_defaults_and_relative_paths(tmp_path):

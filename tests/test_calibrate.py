@@ -216,27 +216,32 @@ def test_video_sampling_and_duplicates(tmp_path):
 
 # --- bad input: one line on stderr, exit 2 ------------------------------------------------
 def test_no_images_found(tmp_path):
-    assert_one_line_error(
-        mirage(
-            "calibrate", tmp_path, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml"
-        ),
-        "no images found",
-    )
+    (tmp_path / "empty").mkdir()  # (an output inside the input folder is refused: issue 30)
+    args = ["--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml"]
+    assert_one_line_error(mirage("calibrate", tmp_path / "empty", *args), "no images found")
 
 
 def test_wrong_board_size(tmp_path):
     imgs = sorted(REAL.glob("*.jpg"))[:4]
     r = mirage("calibrate", *imgs, "--board", "7x5", "--square", "0.025", "-o", tmp_path / "c.yaml")
-    assert_one_line_error(r, "no 7x5 chessboard found", "--board 5x7")
+    assert_one_line_error(r, "no 7x5 chessboard found", "--board 6x4")  # squares for corners
     assert not (tmp_path / "c.yaml").exists()
 
 
 def test_noise_images(tmp_path):
     rng = np.random.default_rng(0)
+    (tmp_path / "in").mkdir()
     for i in range(3):
-        cv2.imwrite(str(tmp_path / f"n{i}.png"), rng.integers(0, 255, (240, 320), np.uint8))
+        cv2.imwrite(str(tmp_path / "in" / f"n{i}.png"), rng.integers(0, 255, (240, 320), np.uint8))
     r = mirage(
-        "calibrate", tmp_path, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml"
+        "calibrate",
+        tmp_path / "in",
+        "--board",
+        "9x6",
+        "--square",
+        "0.025",
+        "-o",
+        tmp_path / "c.yaml",
     )
     assert_one_line_error(r, "no 9x6 chessboard found in any of the 3 images")
 
@@ -248,24 +253,24 @@ def test_too_few_views(tmp_path):
 
 
 def test_mixed_image_sizes(tmp_path):
+    src = tmp_path / "in"  # the images; the camera goes beside, not among them
+    src.mkdir()
     imgs = sorted(REAL.glob("*.jpg"))[:4]
     for p in imgs[:3]:
-        shutil.copy(p, tmp_path)
+        shutil.copy(p, src)
     small = cv2.resize(cv2.imread(str(imgs[3])), (320, 240))
-    cv2.imwrite(str(tmp_path / "small.jpg"), small)
-    r = mirage(
-        "calibrate", tmp_path, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml"
-    )
+    cv2.imwrite(str(src / "small.jpg"), small)
+    r = mirage("calibrate", src, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml")
     assert_one_line_error(r, "different sizes", "640x480", "320x240")
 
 
 def test_corrupt_image_is_skipped(tmp_path):
+    src = tmp_path / "in"  # the images; the camera goes beside, not among them
+    src.mkdir()
     for p in sorted(REAL.glob("*.jpg")):
-        shutil.copy(p, tmp_path)
-    (tmp_path / "right99.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
-    r = mirage(
-        "calibrate", tmp_path, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml"
-    )
+        shutil.copy(p, src)
+    (src / "right99.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    r = mirage("calibrate", src, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml")
     assert r.returncode == 0, r.stderr
     assert "mirage: warning: skipped cannot decode image" in r.stderr
     assert "right99.jpg" in r.stderr and "Traceback" not in r.stderr
@@ -274,10 +279,10 @@ def test_corrupt_image_is_skipped(tmp_path):
 
 
 def test_only_corrupt_images(tmp_path):
-    (tmp_path / "a.jpg").write_bytes(b"garbage")
-    r = mirage(
-        "calibrate", tmp_path, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml"
-    )
+    src = tmp_path / "in"  # the images; the camera goes beside, not among them
+    src.mkdir()
+    (src / "a.jpg").write_bytes(b"garbage")
+    r = mirage("calibrate", src, "--board", "9x6", "--square", "0.025", "-o", tmp_path / "c.yaml")
     assert r.returncode == 2 and "mirage: error: none of the 1 images could be read" in r.stderr
 
 

@@ -488,6 +488,135 @@ CASES = [
 ]
 
 
+# --- issue 30: outputs that hide inside inputs (folders, globs, other options, batch) -------
+FR = ["track", "frames", "--model", "{M}"]
+CAL_GLOB = ["calibrate", "frames/*.jpg", "--board", "9x6", "--square", "0.025"]
+CASES += [
+    C("track-out-is-image-in-folder", *FR, "-o", "frames/right02.jpg", needs=["frames"],
+      contains="same file as VIDEO frames"),
+    C("track-out-inside-image-folder", *FR, "-o", "frames/poses.csv", needs=["frames"],
+      contains="inside VIDEO frames"),
+    C("track-tum-inside-folder-via-dotdot", *FR, "--tum", "frames/../frames/p.tum",
+      needs=["frames"], contains="inside VIDEO"),
+    C("track-out-is-hard-link-to-image", *FR, "-o", "hard.jpg", needs=["frames", "hardlink"],
+      contains="same file"),
+    C("track-out-inside-bag", "track", "bag", "--model", "{M}", "-o", "bag/poses.csv",
+      needs=["bag"], contains="inside VIDEO bag"),
+    C("track-out-in-symlinked-folder", *FR, "-o", "frames_link/poses.csv",
+      needs=["frames", "symlink"], contains="inside VIDEO frames"),
+    C("cal-report-is-glob-member", *CAL_GLOB, "--report", "frames/right01.jpg",
+      needs=["frames"], contains="same file"),
+    C("cal-report-matches-glob", *CAL_GLOB, "--report", "frames/calib_000.jpg",
+      needs=["frames"], contains="matches INPUT frames/*.jpg"),
+    C("cal-out-inside-folder", "calibrate", "frames", "--board", "9x6", "--square", "0.025",
+      "-o", "frames/camera.yaml", needs=["frames"], contains="inside INPUT frames"),
+    C("bm-out-inside-keyframes", "build-model", "frames", "--camera", "{CAM}", "--poses",
+      "{KP}", "-o", "frames/m.mirage", needs=["frames"], contains="inside INPUT frames"),
+    C("report-out-is-transform-file", *REPORT[:-1], "tt.txt", "--truth", "{TRUTH}",
+      "--truth-transform", "tt.txt", needs=["transform"], contains="--truth-transform"),
+    C("report-summary-is-transform-file", *REPORT, "--truth", "{TRUTH}",
+      "--truth-transform", "tt.txt", "--summary", "tt.txt", needs=["transform"],
+      contains="same file"),
+    C("report-out-is-config", "--config", "cfg.yaml", *REPORT[:-1], "cfg.yaml",
+      needs=["cfg"], contains="--config"),
+    C("synth-width-absurd", *SYNTH, "--width", "1000000000", contains="--width"),
+    C("synth-height-makes-width-absurd", *SYNTH, "--height", "8000", contains="10667x8000"),
+    C("demo-out-inside-sample", "demo", "--sample-data", "sample", "--out", "sample/d",
+      needs=["sample_copy"], contains="inside --sample-data"),
+    # --- issue 30: the last silent inputs, and messages that say what to fix -------------
+    C("config-two-track-sections", *REPORT, needs=["cfg_dup"], contains="'track' appears twice"),
+    C("report-path-unknown-key", *REPORT[:3], "look.yaml", "-o", "out.csv", needs=["paths"],
+      contains="did you mean 'look_at_m'"),
+    C("report-path-radius-1e308", *REPORT[:3], "huge.yaml", "-o", "out.csv", needs=["paths"],
+      contains="radius_m 1e+308 is beyond"),
+    C("report-poses-status-unknown", "report", "status.csv", "--path", "{PATH}", "-o",
+      "out.csv", needs=["paths"], contains="'good'; expected one of ok, lost"),
+    C("report-truth-transform-missing-file", *REPORT, "--truth", "{TRUTH}",
+      "--truth-transform", "mocap/t_body_cam.txt", contains="file mocap/t_body_cam.txt not found"),
+    C("synth-video-radius-nan", *SYNTH, "--video-radius", "nan", contains="--video-radius"),
+    C("bm-nfeatures-huge", *BUILD, "--poses", "{KP}", "--nfeatures", "100000000000",
+      contains="--nfeatures"),
+    C("track-camera-width-zero", *TRACK, "--camera", "zero_w.yaml", needs=["paths"],
+      contains="must be positive"),
+    C("batch-empty-range-frames-and-seconds", "batch", "camp3.yaml", needs=["campaign"],
+      contains="'end' 30 (frame 30) must come after 'start' 2s (frame 60)"),
+    # --- issue 30: the small things -------------------------------------------------------
+    C("track-global-option-after-command", *TRACK, "-q",
+      contains="-q is a global option: it goes before the command, 'mirage -q track ...'"),
+    C("cal-board-counts-squares", "calibrate", "frames", "--board", "10x7", "--square",
+      "0.025", "-o", "out.yaml", needs=["frames"], contains="try --board 9x6"),
+    C("track-plumb-bob-8-coefficients", *TRACK, "--camera", "plumb8.yaml", "--end", "0s",
+      needs=["paths"], contains="--end"),
+    C("track-min-inliers-absurd", *TRACK, "--min-inliers", "100000000000",
+      contains="--min-inliers"),
+    C("cal-subpix-window-absurd", *CALIB, "--square", "0.02", "--subpix-window",
+      "100000000000", contains="--subpix-window"),
+    C("synth-calib-views-absurd", *SYNTH, "--calib-views", "100000000",
+      contains="--calib-views"),
+    C("batch-out-is-flight-truth", "batch", "camp.yaml", needs=["campaign"],
+      contains="is the same file as flight 'fl' truth"),
+    C("batch-out-inside-flight-frames", "batch", "camp2.yaml", needs=["frames", "campaign"],
+      contains="inside flight 'frames' video"),
+]  # fmt: skip
+
+
+def _setup(needs: list, world: dict) -> None:
+    """The extra files some cases need, all in the case's own folder."""
+    tmp = world["TMP"]
+    if "frames" in needs:  # an image folder: a copy, never the repository's own files
+        (tmp / "frames").mkdir()
+        for f in sorted(CAL.glob("*.jpg"))[:3]:
+            shutil.copyfile(f, tmp / "frames" / f.name)
+    if "hardlink" in needs:
+        os.link(tmp / "frames" / "right02.jpg", tmp / "hard.jpg")
+    if "symlink" in needs:
+        (tmp / "frames_link").symlink_to(tmp / "frames")
+    if "bag" in needs:  # a ROS 2 bag is a folder holding metadata.yaml
+        (tmp / "bag").mkdir()
+        (tmp / "bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    if "sample_copy" in needs:  # the sample data's small files, in the case's folder
+        (tmp / "sample" / "keyframes").mkdir(parents=True)
+        for name in ("desired_path.yaml", "orbit_truth.csv", "camera_truth.yaml"):
+            shutil.copyfile(SAMPLE / name, tmp / "sample" / name)
+        shutil.copyfile(world["KP"], tmp / "sample" / "keyframes" / "poses.csv")
+        (tmp / "sample" / "orbit.mp4").write_bytes(b"")
+        (tmp / "sample" / "calibration").mkdir()
+    if "cfg_dup" in needs:
+        (tmp / "mirage.yaml").write_text(
+            "track:\n  every: 2\nreport:\n  t-max-diff: 0.02\ntrack:\n  max-rmse: 2\n"
+        )
+    if "paths" in needs:
+        (tmp / "look.yaml").write_text("type: circle\nradius_m: 1.5\nlook_at: [0, 0, 0.2]\n")
+        (tmp / "huge.yaml").write_text("type: circle\nradius_m: 1e308\n")
+        (tmp / "status.csv").write_text(GOOD.replace("frame,", "frame,status,", 1)
+                                        .replace("\n0,", "\n0,ok,").replace("\n1,", "\n1,good,"))
+        cam = world["CAM"].read_text()
+        (tmp / "plumb8.yaml").write_text(  # the sample's lens, as 8 coefficients (3 zero)
+            cam.replace("cols: 5", "cols: 8").replace("0. ]", "0., 0., 0., 0. ]")
+            + 'distortion_model: "plumb_bob"\n'
+        )
+        (tmp / "zero_w.yaml").write_text(cam.replace("image_width: 640", "image_width: 0"))
+    if "transform" in needs:
+        (tmp / "tt.txt").write_text("0 0 0 1 0 0 0\n")
+    if "cfg" in needs:
+        (tmp / "cfg.yaml").write_text("report:\n  t-max-diff: 0.02\n")
+    if "campaign" in needs:
+        (tmp / "camp_out" / "fl").mkdir(parents=True)
+        shutil.copyfile(world["TRUTH"], tmp / "camp_out" / "fl" / "poses.csv")
+        (tmp / "camp.yaml").write_text(
+            f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: camp_out}}\n"
+            f"flights:\n  - {{video: {world['V']}, name: fl, truth: camp_out/fl/poses.csv}}\n"
+        )
+        (tmp / "camp3.yaml").write_text(
+            f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: camp3_out}}\n"
+            f"flights:\n  - {{video: {world['V']}, start: 2s, end: 30}}\n"
+        )
+        (tmp / "camp2.yaml").write_text(
+            f"defaults: {{model: {world['M']}, path: {world['PATH']}, output: frames}}\n"
+            "flights:\n  - {video: frames}\n"
+        )
+
+
 def _fill(args: list, p: dict) -> list[str]:
     return [str(a).format(**p) for a in args]
 
@@ -582,6 +711,7 @@ def test_catalogue(case: Case, world, capsys, monkeypatch):
     if "synth_cam" in case.needs:
         (tmp / "so").mkdir()
         shutil.copyfile(world["CAM"], tmp / "so" / "camera_truth.yaml")
+    _setup(case.needs, world)
     if "config" in case.needs:
         (tmp / "mirage.yaml").write_text(f"track:\n  model: {world['M']}\n  max-rmse: .nan\n")
     # the copies (inside tmp) and the originals they were made from
@@ -623,6 +753,7 @@ FULL_DISK = [
     ("track", [*TRACK[:-1], "{FULL}/out.csv", "--end", "2"]),
     ("track-tum", [*TRACK[:-1], "new.csv", "--end", "2", "--tum", "{FULL}/out.tum"]),
     ("inspect-plot", ["inspect", "{M}", "--plot", "{FULL}/out.png"]),
+    ("track-overlay", [*TRACK[:-1], "new.csv", "--end", "2", "--overlay", "{FULL}/out.mp4"]),
     ("synth-camera", ["synth", "{FULL}/s", "--only", "calibration", "--calib-views", "1"]),
 ]
 
@@ -697,6 +828,9 @@ def test_signal_mid_track_keeps_finished_frames(sig, code, world):
     kept = int(re.search(r"kept (\d+) frames in poses.csv", line).group(1))
     assert kept >= 3 and _rows(tmp / "poses.csv") == kept
     assert (tmp / "p.tum").exists() and (tmp / "ov.mp4").stat().st_size > 0
+    from mirage_cli.fileio import video_frames_written  # a frame each row, none fewer
+
+    assert video_frames_written(tmp / "ov.mp4") == kept
     assert not _hidden(tmp), _hidden(tmp)
 
 
@@ -822,3 +956,324 @@ def test_sigterm_as_a_zip_entry_opens_is_the_interrupt_not_a_zip_error(world, mo
     assert len(calls) == 3
     assert out.read_text() == PROTECTED["out.mirage"]
     assert not _hidden(world["TMP"]), _hidden(world["TMP"])
+
+
+# --- issue 30: outputs that are not regular files are written through, never replaced -----
+def _null_node(path: Path) -> Path:
+    """A private character device like /dev/null (major 1, minor 3) in the test's folder: a
+    regression replaces this node, never the machine's /dev/null."""
+    import stat
+
+    try:
+        os.mknod(path, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+    except OSError as e:
+        pytest.skip(f"creating a device node needs root (CAP_MKNOD): {e.strerror}")
+    return path
+
+
+def _is_null_device(path: Path) -> bool:
+    import stat
+
+    st = os.lstat(path)
+    return stat.S_ISCHR(st.st_mode) and st.st_rdev == os.makedev(1, 3)
+
+
+def _fifo_reader(path: Path):
+    """Open a FIFO for reading in a thread (a writer's open blocks until then); returns a
+    function giving everything read."""
+    import threading
+
+    os.mkfifo(path)
+    got: list[bytes] = []
+
+    def read():
+        with open(path, "rb") as f:
+            got.append(f.read())
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+
+    def result() -> bytes:
+        t.join(60)
+        return b"".join(got)
+
+    return result
+
+
+def test_report_writes_through_a_device_and_a_fifo(world, capsys, monkeypatch):
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    nul = _null_node(tmp / "nul")
+    fifo = _fifo_reader(tmp / "report.fifo")
+    args = _fill(REPORT[:-1], world) + ["report.fifo", "--summary", "nul", "--plot", "nul"]
+    code, err, warned = run_in_process(args, capsys)
+    assert code == 0, err
+    assert fifo().startswith(b"frame,"), "the FIFO's reader got the report"
+    assert _is_null_device(nul), "the device node was replaced"
+    assert Path(tmp / "report.fifo").is_fifo()
+    assert not _hidden(tmp) and not warned, warned
+
+
+def test_track_writes_through_a_device_and_a_fifo(world, capsys, monkeypatch):
+    """The row-by-row pose writer and the overlay video (no suffix: an .mp4 is made and
+    copied through) write into the special files; nothing replaces them."""
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    nul = _null_node(tmp / "nul")
+    fifo = _fifo_reader(tmp / "poses.fifo")
+    args = [*_fill(TRACK[:-1], world), "nul", "--end", "3", "--tum", "poses.fifo"]
+    code, err, _ = run_in_process([*args, "--overlay", "nul"], capsys)
+    assert code == 0, err
+    rows = [ln for ln in fifo().decode().splitlines() if not ln.startswith("#")]
+    assert len(rows) == 3, "three TUM rows through the FIFO"
+    assert _is_null_device(nul) and Path(tmp / "poses.fifo").is_fifo()
+    assert not _hidden(tmp)
+
+
+def test_stdout_link_output_writes_standard_output(world):
+    """`-o /dev/stdout` (here a private link to /proc/self/fd/1, the same thing): the CSV
+    goes to standard output and the link stays a link."""
+    tmp = world["TMP"]
+    (tmp / "stdout").symlink_to("/proc/self/fd/1")
+    p = _popen(["-q", *_fill(REPORT[:-1], world), "stdout"], tmp, stdout=subprocess.PIPE)
+    out, err = p.communicate(timeout=120)
+    assert p.returncode == 0, err
+    assert out.startswith("frame,") and len(out.splitlines()) > 100
+    assert (tmp / "stdout").is_symlink()
+    assert not _hidden(tmp)
+
+
+def test_symlink_output_writes_its_target(world, capsys, monkeypatch):
+    """A symlinked output replaces the file it points to (atomically, in the target's
+    folder); the link stays a link."""
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    (tmp / "elsewhere").mkdir()
+    (tmp / "elsewhere" / "r.csv").write_text("old\n")
+    (tmp / "link.csv").symlink_to(tmp / "elsewhere" / "r.csv")
+    code, err, _ = run_in_process([*_fill(REPORT[:-1], world), "link.csv"], capsys)
+    assert code == 0, err
+    assert (tmp / "link.csv").is_symlink()
+    assert (tmp / "elsewhere" / "r.csv").read_text().startswith("frame,")
+    assert not _hidden(tmp) and not _hidden(tmp / "elsewhere")
+
+
+# --- issue 30: signals from the first instruction, never swallowed ------------------------
+def _catches_sigterm(pid: int) -> bool:
+    """Whether the process has its own SIGTERM handler yet (/proc's caught-signal mask)."""
+    with contextlib.suppress(OSError, StopIteration, ValueError):
+        status = Path(f"/proc/{pid}/status").read_text().splitlines()
+        mask = int(next(ln for ln in status if ln.startswith("SigCgt:")).split()[1], 16)
+        return bool(mask & (1 << (signal.SIGTERM - 1)))
+    return False
+
+
+def test_start_up_signals_are_never_swallowed(world):
+    """50 runs of the console script's entry point, each sent SIGINT or SIGTERM at a random
+    moment from the handlers' installation (before click, OpenCV and numba load) through
+    the compiled solver's cache load and the first frames: every one ends with its
+    signal's exit code and one line, and the previous output stays."""
+    import random
+
+    tmp = world["TMP"]
+    rng = random.Random(30)
+    entry = "from mirage_cli.__main__ import run; run()"  # what the `mirage` script runs
+    outcomes = []
+    for i in range(50):
+        sig = (signal.SIGINT, signal.SIGTERM)[i % 2]
+        p = subprocess.Popen(
+            [sys.executable, "-c", entry, *_fill(TRACK, world), "--end", "30"],
+            cwd=tmp,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        t0 = time.monotonic()
+        while not _catches_sigterm(p.pid) and time.monotonic() - t0 < 30 and p.poll() is None:
+            time.sleep(0.001)
+        time.sleep(rng.uniform(0, 1.2))
+        assert p.poll() is None, "the run ended before its signal"
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=120)
+        outcomes.append((sig, p.returncode, err))
+    swallowed = [(s, c, e) for s, c, e in outcomes if c != signals_code(s)]
+    assert not swallowed, swallowed[:3]
+    for sig, code, err in outcomes:
+        name = signal.Signals(sig).name
+        assert_contract(code, err, signals_code(sig), prefix=f"mirage: interrupted ({name})")
+    assert (tmp / "out.csv").read_text() == PROTECTED["out.csv"]
+    assert not _hidden(tmp), _hidden(tmp)
+
+
+def signals_code(sig) -> int:
+    return {signal.SIGINT: 130, signal.SIGTERM: 143}[sig]
+
+
+def test_a_swallowed_signal_still_interrupts(monkeypatch):
+    """A signal whose exception a compiled-code callback dropped is raised at the next
+    check (before the next frame, after the kernels load, before `main` says 0)."""
+    from mirage_cli import signals
+
+    with own_signal_handlers():
+        signals.install()
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+        except signals.Terminated:
+            pass  # what the callback does: print it, drop it
+        with pytest.raises(signals.Terminated):
+            signals.check()
+        signals.check()  # raised once only
+
+
+def test_console_script_installs_the_handlers_before_importing_the_program():
+    """The `mirage` script's entry point is the light __main__.run (signals first), not
+    cli.main (whose module imports click and the config reader before any handler)."""
+    text = (ROOT / "pyproject.toml").read_text()
+    assert re.search(r'^mirage = "mirage_cli\.__main__:run"$', text, re.M), "entry point"
+    code = "import sys, mirage_cli.__main__; print(sorted(m for m in sys.modules if m.startswith(('click', 'cv2', 'numba', 'numpy'))))"  # noqa: E501
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]", out.stdout
+
+
+def test_bad_mplbackend_is_a_warning_not_an_unexpected_error(world):
+    """matplotlib refuses an unknown $MPLBACKEND on import; mirage draws with Agg and
+    never uses a backend: one warning, the plot written, exit 0."""
+    tmp = world["TMP"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "bogus"}
+    args = [*_fill(REPORT[:-1], world), "new.csv", "--plot", "new.png"]
+    p = subprocess.run([sys.executable, "-m", "mirage_cli", *args], cwd=tmp, env=env,
+                       capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert p.stderr.strip().startswith("mirage: warning: MPLBACKEND='bogus'"), p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert (tmp / "new.png").stat().st_size > 0
+
+
+def test_out_of_memory_is_one_line_exit_1(capsys, monkeypatch):
+    from mirage_cli import synth_cli
+
+    def no_memory(*a, **k):
+        raise MemoryError()
+
+    monkeypatch.setattr(synth_cli.synth, "default_camera", no_memory)
+    code, err, _ = run_in_process(["synth", "x"], capsys)
+    assert_contract(code, err, 1, "out of memory")
+
+
+def test_image_names_giving_one_time_warn(tmp_path, caplog):
+    """100.5.png and 100.50.png are one time: a warning naming both (time_s stays empty)."""
+    from mirage_cli.frames import FrameSource
+
+    for name in ("100.5.png", "100.50.png", "100.6.png"):
+        shutil.copyfile(CAL / "right01.jpg", tmp_path / name)
+    with caplog.at_level("WARNING", logger="mirage"):
+        src = FrameSource([tmp_path])
+    assert src.times is None
+    assert "100.5.png and 100.50.png have names giving the same time (100.5 s)" in caplog.text
+
+
+def test_camera_info_with_a_nan_focal_length_is_refused():
+    """A NaN in a bag's camera_info K was read as 'uncalibrated' (None) without a word."""
+    from types import SimpleNamespace
+
+    from mirage_cli.bags import camera_from_info
+    from mirage_cli.errors import InputError
+
+    k = [float("nan"), 0, 320, 0, 500, 240, 0, 0, 1]
+    msg = SimpleNamespace(k=k, d=[0.0] * 5, distortion_model="plumb_bob", width=640, height=480)
+    with pytest.raises(InputError, match="NaN"):
+        camera_from_info(msg, "/cam/camera_info in x.bag")
+    msg.k = [0.0] * 9  # all zero: uncalibrated, as before
+    assert camera_from_info(msg, "x") is None
+
+
+def test_model_box_with_nan_projections_is_the_whole_frame_without_a_warning(sample_model):
+    """A projection the lens model cannot place (NaN) made numpy warn 'invalid value
+    encountered in cast' and the box came out empty, i.e. the whole frame: the same result
+    now, said without the warning."""
+    import numpy as np
+
+    from mirage_cli.model import LandmarkModel
+    from mirage_cli.pose import Pose
+    from mirage_cli.track import Tracker, TrackSettings
+
+    model = LandmarkModel.load(sample_model)
+    tracker = Tracker(model, model.camera, TrackSettings())
+    pose = model.keyframes[0].pose
+    real = tracker.camera.project
+
+    def with_nan(X, p):
+        uv = real(X, p)
+        uv[0] = np.nan
+        return uv
+
+    tracker.camera.project = with_nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert tracker._model_box(pose, (480, 640)) is None
+    tracker.camera.project = real
+    assert isinstance(pose, Pose)
+
+
+@pytest.mark.parametrize("command", sorted(cli.COMMANDS))
+def test_help_shows_no_none_bound_and_no_doubled_percent(command, capsys):
+    with own_signal_handlers(), pytest.raises(SystemExit) as e:
+        cli.main([command, "--help"])
+    out = capsys.readouterr().out
+    assert e.value.code == 0
+    assert "None]" not in out and "None;" not in out and "%%" not in out, out
+
+
+def test_square_in_millimetres_warns(world, capsys, monkeypatch):
+    """--square 25 is a 25 m square: calibrated (the data are usable), with a warning."""
+    tmp = world["TMP"]
+    monkeypatch.chdir(tmp)
+    _setup(["frames"], world)
+    args = ["calibrate", "frames", "--board", "9x6", "--square", "25", "-o", "cam.yaml"]
+    code, err, _ = run_in_process(args, capsys)
+    assert code == 0, err
+    assert "mirage: warning: --square 25 is in metres" in err and "--square 0.025" in err
+
+
+def test_verbose_prints_stages_frames_and_refusals(world, capsys, monkeypatch):
+    """-v: each stage's time and, after tracking, the refused frames by reason and the
+    keyframes used; -vv: a line per frame. Without -v none of it."""
+    monkeypatch.chdir(world["TMP"])
+    code, err, _ = run_in_process(["-v", *_fill(REPORT, world)], capsys)
+    assert code == 0 and "stage compute the errors:" in err and "poses: 540 frames" in err
+    code, err, _ = run_in_process(_fill(REPORT, world), capsys)
+    assert code == 0 and "stage" not in err
+    track = [*_fill(TRACK[:-1], world), "new.csv", "--start", "425", "--end", "432"]
+    code, err, warned = run_in_process(["-vv", *track], capsys)
+    assert code == 0, err
+    assert not warned, warned  # no Python warning (numpy's cast warning of _model_box)
+    assert "stage load the compiled solver:" in err and "stage tracking:" in err
+    assert re.search(r"^frame 425: \w+", err, re.M), err
+    assert re.search(r"^refused \d+ frame\(s\) as lost", err, re.M), err
+
+
+def test_an_interrupt_in_a_callback_is_not_printed_but_raised_later(capsys):
+    """A signal landing in a callback Python cannot propagate from (ctypes, a finaliser)
+    went to 'Exception ignored in ...' on stderr (a traceback beside the one line):
+    it is silent there and `check` raises it."""
+    import ctypes
+
+    from mirage_cli import signals
+
+    saved = sys.unraisablehook
+    try:
+        sys.unraisablehook = sys.__unraisablehook__
+        with own_signal_handlers():
+            signals.install()
+
+            @ctypes.CFUNCTYPE(None)
+            def callback():
+                os.kill(os.getpid(), signal.SIGTERM)  # the handler raises in here
+
+            callback()
+            assert "Exception ignored" not in capsys.readouterr().err
+            with pytest.raises(signals.Terminated):
+                signals.check()
+    finally:
+        sys.unraisablehook = saved

@@ -142,3 +142,29 @@ def test_cli_start_up_does_not_import_matplotlib():
     code = "import sys, mirage_cli.cli; print('matplotlib' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_overlay_frames_carry_their_frame_number_and_time():
+    """Bottom left: 'frame N  T s' (the pose CSV's frame and time_s), on every status."""
+    cam = default_camera()
+    img = np.full((cam.height, cam.width, 3), 128, np.uint8)
+    rec = SimpleNamespace(status="lost", frame=42, time_s=1.4)
+    out = draw_overlay(img, rec, cam, axis_m=0.2)
+    bottom = np.any(out[-40:, :200] != 128, axis=2)
+    assert bottom.any() and out[-40:, :200].max() == 255  # white text on black
+    assert not np.any(out[40:-40] != 128)  # nothing else but the two boxes
+    from mirage_cli.plotting import _frame_stamp
+
+    assert _frame_stamp(rec) == "frame 42  1.400 s"
+    none = draw_overlay(img, SimpleNamespace(status="lost"), cam, axis_m=0.2)
+    assert not np.any(none[-40:] != 128)  # no frame known: no stamp
+
+
+def test_report_plot_says_the_signs_and_labels_the_lost_band(sample_report):
+    rep, path = sample_report
+    fig = report_figure(rep, path)
+    labels = [a.get_ylabel() for a in fig.axes[1:]]
+    assert any("+ left of path" in s for s in labels), labels
+    assert any("+ turned left" in s for s in labels) and any("+ above" in s for s in labels)
+    legend = fig.axes[1].get_legend()
+    assert legend is not None and "not tracked" in [t.get_text() for t in legend.get_texts()]

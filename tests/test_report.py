@@ -314,3 +314,26 @@ def test_visibility_summary(tmp_path):
     v = rep.summary["visibility"]
     assert v == {"frames_in_view": 13, "tracked_in_view_pct": 100.0,
                  "frames_out_of_view": 7, "ok_out_of_view": 2}  # fmt: skip
+
+
+@pytest.mark.parametrize("timed", [True, False])
+def test_two_lap_polyline_keeps_the_along_path_distance_of_its_lap(timed):
+    """A desired path that circles twice passes every place twice: a frame on the second
+    lap took the first lap's nearest point (the along-track error jumped by a lap).
+    The pass the timing expects (or, untimed, the one after the previous frame) is used."""
+    a = np.linspace(0, 4 * np.pi, 241)  # two laps, waypoints every 3 deg
+    pts = np.column_stack([np.cos(a), np.sin(a), np.full_like(a, 0.5)])
+    lap = 120 * 2 * np.sin(np.radians(1.5))  # the polyline's length of one lap (6.28 m)
+    times = np.linspace(0.0, 20.0, len(a))
+    data = {"type": "polyline", "points_m": pts.tolist()}
+    if timed:
+        data["time_s"] = times.tolist()
+    p = path_from_dict(data)
+    ft = np.linspace(0.05, 19.95, 400)  # the camera 2 cm outside, on time
+    fa = np.interp(ft, times, a)
+    xyz = np.column_stack([1.02 * np.cos(fa), 1.02 * np.sin(fa), np.full_like(fa, 0.5)])
+    e = p.errors(xyz, np.zeros(len(fa)), ft)
+    assert np.all(np.diff(e.path_s_m) > 0), "the arc length goes on into the second lap"
+    assert e.path_s_m[-1] > 1.9 * lap
+    if timed:
+        assert np.abs(e.along_track_m).max() < 0.01

@@ -28,7 +28,7 @@ needs_rerun = pytest.mark.skipif(rr is None, reason="the [viz] extra (rerun-sdk)
 
 VIDEO = SAMPLE / "orbit.mp4"
 N_FRAMES = 15
-MISSING = "--rerun needs rerun-sdk: pip install 'mirage-cli[viz]'"
+MISSING = "--rerun needs rerun-sdk: pip install -e '.[viz]' in the mirage-cli checkout"
 
 
 def read_rrd(path) -> dict[str, list]:
