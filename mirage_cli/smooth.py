@@ -244,11 +244,16 @@ class Smoother:
         self.out_at = 0  # index in `held` of the next frame to give back
 
     def push(self, rec: FrameRecord) -> list[FrameRecord]:
+        m = prepare(rec.measurement)  # first: an interrupt here leaves both queues alike
         self.held.append(rec)
-        self.prepared.append(prepare(rec.measurement))
+        self.prepared.append(m)
         return self._ready(self.s.lag)
 
     def flush(self) -> list[FrameRecord]:
+        # an interrupt between the two appends of `push` held a record without its
+        # measurement ('deque index out of range' in the frames kept on Ctrl-C)
+        while len(self.prepared) < len(self.held):
+            self.prepared.append(prepare(self.held[len(self.prepared)].measurement))
         return self._ready(0)
 
     def _ready(self, future: int) -> list[FrameRecord]:
