@@ -98,13 +98,17 @@ def test_paths_normalises_options():
 
 
 def test_same_file(files):
+    """The guard's notion of 'the same file': by real path and by inode (a hard link)."""
     os.link(files / "in.csv", files / "hard.csv")
-    assert fileio._same_file("in.csv", "hard.csv")
-    assert fileio._same_file("in.csv", str(files / "in.csv"))
-    assert not fileio._same_file("in.csv", "other.csv")
-    assert fileio._same_file("new.csv", "./new.csv")  # neither exists yet
-    assert not fileio._same_file("new.csv", "in.csv")  # one exists
-    assert not fileio._same_file("in.csv", "new.csv")
+    guard = fileio._Guard([fileio._Input.of("POSES", "in.csv")])
+    assert guard.clash("hard.csv") is not None  # another name, the same inode
+    assert guard.clash(str(files / "in.csv")) is not None
+    assert guard.clash("./in.csv") is not None
+    assert guard.clash("other.csv") is None
+    assert guard.clash("new.csv") is None  # does not exist yet
+    new = fileio._Guard([fileio._Input.of("POSES", "new.csv")])
+    assert new.clash("./new.csv") is not None  # neither exists yet: by path
+    assert new.clash("in.csv") is None
 
 
 # --- atomic writes ------------------------------------------------------------------------
