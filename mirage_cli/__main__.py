@@ -9,11 +9,16 @@ def run() -> None:
     signals.install()  # before any import below: from here on a signal is one line
     try:
         from .cli import main
-    except KeyboardInterrupt as e:  # Ctrl-C or SIGTERM while importing OpenCV, numba, ...
+    except (KeyboardInterrupt, ImportError) as e:  # a signal while OpenCV, numba ... load
         import sys
 
-        print(signals.message(e), file=sys.stderr)
-        sys.exit(signals.exit_code(e))
+        intr = e
+        while intr is not None and not isinstance(intr, KeyboardInterrupt):
+            intr = intr.__cause__ or intr.__context__  # numba re-raises it as ImportError
+        if intr is None:
+            raise
+        print(signals.message(intr), file=sys.stderr)
+        sys.exit(signals.exit_code(intr))
     main()
 
 

@@ -188,8 +188,23 @@ def _invoke(argv: list[str]) -> int:
     return 0
 
 
+def _interrupt_behind(e: BaseException) -> BaseException:
+    """The interrupt an exception was raised while handling, if any: a library that turns
+    whatever stopped its import into its own error (numba: 'numba._devicearray failed to
+    import' when SIGINT lands in it) must not make a Ctrl-C an 'unexpected' error, exit 1."""
+    seen, cause = set(), e
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, KeyboardInterrupt):
+            return cause
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    return e
+
+
 def _report(e: BaseException) -> int:
     """Print the one line for an exception that ended the run; return the exit code."""
+    if not isinstance(e, KeyboardInterrupt | SystemExit):
+        e = _interrupt_behind(e)
     try:
         with signals.deferred():
             return _describe(e)

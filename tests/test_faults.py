@@ -1277,3 +1277,18 @@ def test_an_interrupt_in_a_callback_is_not_printed_but_raised_later(capsys):
                 signals.check()
     finally:
         sys.unraisablehook = saved
+
+
+def test_an_interrupt_a_library_turned_into_its_own_error_is_still_the_interrupt():
+    """A SIGINT inside numba's import surfaced as ImportError('numba._devicearray failed to
+    import') with the interrupt as its context: exit 130, not 'unexpected ImportError' 1
+    (1 of 50 start-up signals under load)."""
+    try:
+        try:
+            raise KeyboardInterrupt()
+        except BaseException:
+            raise ImportError("numba._devicearray failed to import") from None  # noqa: B904
+    except ImportError as e:
+        e.__context__ = KeyboardInterrupt()  # `from None` hides it from display only
+        assert cli._report(e) == 130
+    assert cli._report(ImportError("no module")) == 1
