@@ -205,6 +205,10 @@ def _report(e: BaseException) -> int:
     """Print the one line for an exception that ended the run; return the exit code."""
     if not isinstance(e, KeyboardInterrupt | SystemExit):
         e = _interrupt_behind(e)
+        try:  # a signal raised that never surfaced as itself (numba's C import code
+            signals.check()  # reports it as ImportError with no chain): it ended the run
+        except KeyboardInterrupt as intr:
+            e = intr
     try:
         with signals.deferred():
             return _describe(e)

@@ -1102,10 +1102,14 @@ def test_start_up_signals_are_never_swallowed(world):
     for sig, code, err in outcomes:
         name = signal.Signals(sig).name
         assert_contract(code, err, signals_code(sig), prefix=f"mirage: interrupted ({name})")
-    # the previous output stays, unless a run had finished it (all 30 rows renamed into
-    # place) when its signal came: never a half-written file (seen once on a loaded machine)
+    # the previous output stays, unless a run was already tracking when its signal came:
+    # then it holds the finished frames, whole rows under the pose header (the brief: an
+    # interrupted track keeps every frame done so far); seen on a loaded machine
     out = (tmp / "out.csv").read_text()
-    assert out == PROTECTED["out.csv"] or len(out.strip().splitlines()) == 31, out[:200]
+    if out != PROTECTED["out.csv"]:
+        rows = out.splitlines()
+        assert rows[0].startswith("frame,time_s,status") and out.endswith("\n"), out[:200]
+        assert all(r.count(",") == rows[0].count(",") for r in rows), out[:200]
     assert not _hidden(tmp), _hidden(tmp)
 
 
