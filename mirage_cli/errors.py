@@ -35,3 +35,12 @@ def cv_message(e: Exception) -> str:
     """The informative last line of an OpenCV (or other) exception, for one-line errors."""
     s = str(e).strip()
     return s.splitlines()[-1] if s else type(e).__name__
+
+
+class OptionError(InputError):
+    """An option's value is wrong (`option` names it, e.g. '--end'); the CLI reports it as
+    click's usage error for that option, other callers as an InputError."""
+
+    def __init__(self, message: str, option: str):
+        super().__init__(message)
+        self.message, self.option = message, option

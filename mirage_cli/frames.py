@@ -202,9 +202,9 @@ def name_times(paths: list[Path]) -> np.ndarray | None:
 
 
 def _warn(text: str) -> None:
-    from . import ui
+    from .logs import log
 
-    ui.log.warning(text)
+    log.warning(text)
 
 
 class FrameSource:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from .fileio import atomic_path
-from .trajectory import Status
+from .records import Status
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -24,8 +24,8 @@ if TYPE_CHECKING:
     from .camera import Camera
     from .model import LandmarkModel
     from .path import Path_
+    from .records import FrameRecord
     from .report import Report
-    from .trajectory import FrameRecord
 
 
 def import_matplotlib():
@@ -43,9 +43,9 @@ def import_matplotlib():
         backend = os.environ.pop("MPLBACKEND", None)
         if backend is None or "backend" not in str(e).lower():
             raise
-        from . import ui
+        from .logs import log
 
-        ui.log.warning(
+        log.warning(
             f"MPLBACKEND={backend!r} is not a matplotlib backend; ignored (mirage writes "
             "PNGs with Agg)"
         )

@@ -14,7 +14,7 @@ import pandas as pd
 
 from .errors import InputError
 from .path import Path_
-from .trajectory import Status
+from .records import Status
 
 BASE_COLUMNS = [
     "frame", "time_s", "status", "x_m", "y_m", "z_m",

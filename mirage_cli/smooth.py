@@ -39,8 +39,8 @@ import numpy as np
 import scipy.linalg.lapack
 
 from .pose import Pose, rodrigues_many, rotvecs
+from .records import FrameRecord, Measurement, Reason, Status
 from .solver import sigmas
-from .trajectory import FrameRecord, Measurement, Reason, Status
 
 
 @dataclass

@@ -34,6 +34,7 @@ from .features import detect, guided_match, make_detector, to_gray
 from .frames import Frame
 from .model import LandmarkModel, ground_points, point_twins
 from .pose import Pose
+from .records import FrameRecord, Measurement, Reason, Status
 from .signals import through_compiled_code
 from .solver import (
     PoseEstimate,
@@ -44,7 +45,6 @@ from .solver import (
     solve_pose,
 )
 from .solver import warm_up as _warm_up_solver
-from .trajectory import FrameRecord, Measurement, Reason, Status
 
 RANSAC_HYPOTHESES = RansacOptions.iterations  # how many poses RANSAC tries at most
 

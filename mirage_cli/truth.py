@@ -20,7 +20,8 @@ import pandas as pd
 from . import validate
 from .bags import is_bag_path, read_poses
 from .errors import InputError
-from .trajectory import Status, derived_angles, guess_format, match_times, read_trajectory
+from .records import Status
+from .trajectory import derived_angles, guess_format, match_times, read_trajectory
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
 

@@ -1,9 +1,10 @@
-"""The one place where numbers from users are checked: option types and input tables.
+"""Checks of numbers from users, without click: frame positions, finite numbers, frame
+ranges and input tables.
 
 Python's float() accepts 'nan', 'inf' and 'infs'-like spellings, and NaN compares False
-with every bound, so click's FloatRange lets NaN through (a NaN threshold silently
-disables a filter or loses every frame). Every numeric option uses a type from here;
-every pose table read from a file goes through `pose_table`.
+with every bound (a NaN threshold silently disables a filter or loses every frame): the
+command line's option types (cli/options.py) and the campaign file refuse them; every pose
+table read from a file goes through `pose_table`.
 """
 
 from __future__ import annotations
@@ -13,56 +14,14 @@ import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-import click
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, OptionError
 
 if TYPE_CHECKING:  # pandas loads when a table is read, not with `mirage track`
     import pandas as pd
 
 QUAT_TOL = 0.01  # |norm - 1| up to this is rounding in a hand-written file: normalised
-
-
-def _describe(rng) -> str:
-    """click's range text for --help, or nothing without bounds (click would print
-    '[x<=None]')."""
-    if rng.min is None and rng.max is None:
-        return ""
-    return click.types._NumberRangeBase._describe_range(rng)
-
-
-class FiniteFloat(click.FloatRange):
-    """A finite float within optional bounds (NaN and +-inf are refused with one line)."""
-
-    name = "number"
-
-    def _describe_range(self) -> str:
-        return _describe(self)
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, bool) or isinstance(value, list | dict | tuple):
-            self.fail(f"{value!r} is not a number", param, ctx)
-        rv = click.FLOAT.convert(value, param, ctx)
-        if not math.isfinite(rv):
-            self.fail(f"{value!r} is not a finite number", param, ctx)
-        return super().convert(rv, param, ctx)
-
-
-class BoundedInt(click.IntRange):
-    """An integer within bounds; refuses floats with a fraction and lists from a config."""
-
-    name = "integer"
-
-    def _describe_range(self) -> str:
-        return _describe(self)
-
-    def convert(self, value, param, ctx):
-        if isinstance(value, bool) or isinstance(value, list | dict | tuple):
-            self.fail(f"{value!r} is not an integer", param, ctx)
-        if isinstance(value, float) and not value.is_integer():
-            self.fail(f"{value!r} is not an integer", param, ctx)
-        return super().convert(value, param, ctx)
 
 
 @dataclass(frozen=True)
@@ -82,31 +41,39 @@ class When:
 _WHEN = re.compile(r"\s*(\d+)\s*|\s*(\d+(?:\.\d*)?|\.\d+)\s*s\s*", re.IGNORECASE)
 
 
-class FrameOrTime(click.ParamType):
-    """'120' (frame number) or '4s' / '2.5s' (seconds); never negative, NaN or infinite."""
-
-    name = "frame|seconds"
-
-    def convert(self, value, param, ctx):
-        if value is None or isinstance(value, When):
-            return value
-        if isinstance(value, bool) or not isinstance(value, int | float | str):
-            self.fail(f"{value!r}: use a frame number (120) or seconds (4s)", param, ctx)
-        if isinstance(value, int | float):
-            value = (
-                str(value)
-                if not (isinstance(value, float) and value.is_integer())
-                else str(int(value))
-            )
-        m = _WHEN.fullmatch(value)
-        if not m:
-            self.fail(f"{value!r}: use a frame number (120) or seconds (4s)", param, ctx)
-        if m.group(1) is not None:
-            return When(float(int(m.group(1))), False)
-        return When(float(m.group(2)), True)
+def parse_when(value) -> When:
+    """'120' (frame number) or '4s' / '2.5s' (seconds); never negative, NaN or infinite.
+    Raises ValueError with the message for the user."""
+    if isinstance(value, When):
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float | str):
+        raise ValueError(f"{value!r}: use a frame number (120) or seconds (4s)")
+    if isinstance(value, int | float):
+        value = (
+            str(value) if not (isinstance(value, float) and value.is_integer()) else str(int(value))
+        )
+    m = _WHEN.fullmatch(value)
+    if not m:
+        raise ValueError(f"{value!r}: use a frame number (120) or seconds (4s)")
+    if m.group(1) is not None:
+        return When(float(int(m.group(1))), False)
+    return When(float(m.group(2)), True)
 
 
-FRAME_OR_TIME = FrameOrTime()
+def finite_float(value, min: float | None = None, min_open: bool = False) -> float:
+    """A finite number from a file (a campaign YAML), at least (above) `min`; raises
+    ValueError with the message the command line's FiniteFloat option gives."""
+    if isinstance(value, bool) or isinstance(value, list | dict | tuple):
+        raise ValueError(f"{value!r} is not a number")
+    try:
+        rv = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{value!r} is not a valid float.") from None
+    if not math.isfinite(rv):
+        raise ValueError(f"{value!r} is not a finite number")
+    if min is not None and (rv <= min if min_open else rv < min):
+        raise ValueError(f"{rv} is not in the range x{'>' if min_open else '>='}{min}.")
+    return rv
 
 
 def frame_range(start: When | None, end: When | None, fps: float) -> tuple[int, int | None]:
@@ -114,29 +81,11 @@ def frame_range(start: When | None, end: When | None, fps: float) -> tuple[int, 
     first = start.frame(fps) if start is not None else 0
     last = end.frame(fps) if end is not None else None
     if last is not None and last <= first:
-        raise click.BadParameter(
+        raise OptionError(
             f"--end {end} (frame {last}) must come after --start {start or 0} (frame {first})",
-            param_hint="'--end'",
+            "--end",
         )
     return first, last
-
-
-def float_list(text, option: str, min_value: float | None = None) -> list[float]:
-    """Comma-separated finite numbers (e.g. --heights 0.4,0.8)."""
-    parts = [t.strip() for t in str(text).split(",")]
-    try:
-        vals = [float(t) for t in parts]
-    except ValueError:
-        vals = []
-    if not vals or not all(math.isfinite(v) for v in vals):
-        raise click.BadParameter(
-            f"{text!r} is not a comma-separated list of finite numbers", param_hint=f"'{option}'"
-        )
-    if min_value is not None and min(vals) < min_value:
-        raise click.BadParameter(
-            f"{text!r}: every value must be >= {min_value:g}", param_hint=f"'{option}'"
-        )
-    return vals
 
 
 # --------------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ import numpy as np
 from .errors import EnvironmentFailure, InputError, OutputError, cv_message
 from .fileio import atomic_path, write_failure
 from .model import LandmarkModel
-from .trajectory import FrameRecord
+from .records import FrameRecord
 
 RERUN_MISSING = "--rerun needs rerun-sdk: pip install -e '.[viz]' in the mirage-cli checkout"
 APP_ID = "mirage"

@@ -4,17 +4,24 @@ from __future__ import annotations
 
 import click
 
+from ..boards import MARKER_FRACTION, Board, parse_size
+from ..calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
+from ..calibrate import calibrate as run_calibration
+from ..camera import Camera
+from ..fileio import check_writable, refuse_overwrite
+from ..frames import FrameSource, resolve_inputs, with_topic
+from ..plotting import CALIBRATION_DPI, calibration_figure, save_png
 from . import ui
-from .boards import MARKER_FRACTION, Board, parse_size
-from .calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
-from .calibrate import calibrate as run_calibration
-from .camera import Camera
-from .cli_options import file_option, inputs_argument, output_option, shown, topic_option
 from .config import default_of
-from .fileio import check_writable, refuse_overwrite
-from .frames import FrameSource, resolve_inputs, with_topic
-from .plotting import CALIBRATION_DPI, calibration_figure, save_png
-from .validate import BoundedInt, FiniteFloat
+from .options import (
+    BoundedInt,
+    FiniteFloat,
+    file_option,
+    inputs_argument,
+    output_option,
+    shown,
+    topic_option,
+)
 
 _K_NAMES = ("fx", "fy", "cx", "cy")
 

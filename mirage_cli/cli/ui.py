@@ -3,41 +3,20 @@
 from __future__ import annotations
 
 import contextlib
-import logging
 import sys
 
 import click
 
-from .errors import EnvironmentFailure
-
-log = logging.getLogger("mirage")
+from .. import logs
+from ..errors import EnvironmentFailure
+from ..logs import log
 
 _state = {"quiet": False, "verbose": 0}
 
 
-class _Formatter(logging.Formatter):
-    def format(self, record):
-        if record.levelno >= logging.WARNING:
-            return f"mirage: {record.levelname.lower()}: {record.getMessage()}"
-        return record.getMessage()
-
-
 def setup(verbose: int = 0, quiet: bool = False) -> None:
     _state.update(quiet=quiet, verbose=verbose)
-    log.handlers.clear()
-    h = logging.StreamHandler(sys.stderr)
-    h.setFormatter(_Formatter())
-    log.addHandler(h)
-    log.propagate = False
-    log.setLevel(logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING)
-    try:  # OpenCV's own console warnings only with -vv
-        import cv2
-
-        cv2.utils.logging.setLogLevel(
-            cv2.utils.logging.LOG_LEVEL_INFO if verbose >= 2 else cv2.utils.logging.LOG_LEVEL_ERROR
-        )
-    except (ImportError, AttributeError):
-        pass
+    logs.setup(verbose, quiet)
 
 
 def detail(msg: str, level: int = 1) -> None:

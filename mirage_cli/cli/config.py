@@ -17,8 +17,8 @@ from pathlib import Path
 
 import click
 
-from .errors import InputError
-from .fileio import read_yaml, require_file
+from ..errors import InputError
+from ..fileio import read_yaml, require_file
 
 PROJECT_CONFIG = "mirage.yaml"
 
@@ -201,7 +201,7 @@ def load_config(
     """The effective options (defaults merged with the checked project file) keyed by
     command then parameter name, and the project file they came from (None if none)."""
     if commands is None:
-        from .cli import cli
+        from ..cli import cli
 
         commands = cli.commands
     raw, src = read_config(path, cwd)

@@ -8,16 +8,15 @@ import click
 import numpy as np
 import yaml
 
+from ..errors import InputError
+from ..fileio import atomic_write, check_writable, refuse_overwrite
+from ..path import load_path
+from ..plotting import REPORT_DPI, report_figure, save_png
+from ..report import Report, make_report
+from ..trajectory import read_pose_csv
+from ..truth import BodyToCamera, TruthSettings, load_truth
 from . import ui
-from .cli_options import FILE, file_option, output_option, shown
-from .errors import InputError
-from .fileio import atomic_write, check_writable, refuse_overwrite
-from .path import load_path
-from .plotting import REPORT_DPI, report_figure, save_png
-from .report import Report, make_report
-from .trajectory import read_pose_csv
-from .truth import BodyToCamera, TruthSettings, load_truth
-from .validate import FiniteFloat
+from .options import FILE, FiniteFloat, file_option, output_option, shown
 
 _UNITS = {"_m": "m", "_deg": "deg"}
 

@@ -11,33 +11,39 @@ import click
 import cv2
 import numpy as np
 
-from . import refine, runtime, signals, track, ui
-from .camera import Camera
-from .cli_options import (
-    camera_option,
-    file_option,
-    inputs_argument,
-    output_option,
-    shown,
-    topic_option,
-)
-from .errors import EnvironmentFailure, InputError, NothingFound, OutputError
-from .fileio import (
+from .. import refine, runtime, signals, track
+from ..camera import Camera
+from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
+from ..fileio import (
     atomic_path,
     check_writable,
     refuse_overwrite,
     require_file,
     video_frames_written,
 )
-from .frames import FrameSource, gray_frames, matching_camera, prefetch, with_topic
-from .model import LandmarkModel
-from .plotting import draw_overlay
-from .smooth import Smoother, SmoothSettings
-from .solver import METHODS
-from .track import Tracker, TrackSettings, warm_up
-from .trajectory import FORMATS, TRACK_COLUMNS, Status, TrajectoryWriter
-from .validate import FRAME_OR_TIME, BoundedInt, FiniteFloat, frame_range
-from .viewer import TrackRecording, check_room, rerun_module
+from ..frames import FrameSource, gray_frames, matching_camera, prefetch, with_topic
+from ..model import LandmarkModel
+from ..plotting import draw_overlay
+from ..records import Status
+from ..smooth import Smoother, SmoothSettings
+from ..solver import METHODS
+from ..track import Tracker, TrackSettings, warm_up
+from ..trajectory import FORMATS, TRACK_COLUMNS, TrajectoryWriter
+from ..validate import frame_range
+from ..viewer import TrackRecording, check_room, rerun_module
+from . import ui
+from .options import (
+    FRAME_OR_TIME,
+    BoundedInt,
+    FiniteFloat,
+    camera_option,
+    file_option,
+    inputs_argument,
+    option_errors,
+    output_option,
+    shown,
+    topic_option,
+)
 
 
 def also_write_options(f):
@@ -109,6 +115,7 @@ def also_write_options(f):
     help="Write a Rerun recording (.rrd): frames, inliers, camera path, model; `rerun FILE`.",
 )
 @also_write_options
+@option_errors
 def track_cmd(
     video,
     model_path,

@@ -7,8 +7,8 @@ import time
 
 import click
 
-from . import signals, ui
-from .batch import (
+from .. import signals
+from ..batch import (
     CAMPAIGN_CSV,
     CAMPAIGN_PNG,
     FlightResult,
@@ -17,11 +17,11 @@ from .batch import (
     run_campaign,
     write_campaign_csv,
 )
-from .cli_options import FILE, FOLDER
-from .errors import InputError
-from .fileio import check_writable, ensure_dir
-from .plotting import save_png
-from .validate import BoundedInt
+from ..errors import InputError
+from ..fileio import check_writable, ensure_dir
+from ..plotting import save_png
+from . import ui
+from .options import FILE, FOLDER, BoundedInt
 
 
 @click.command("batch")

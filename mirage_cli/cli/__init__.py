@@ -26,9 +26,10 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import click  # noqa: E402
 
-from . import __version__, fileio, signals, ui  # noqa: E402
+from .. import __version__, fileio, signals  # noqa: E402
+from ..errors import EnvironmentFailure, MirageError  # noqa: E402
+from . import ui  # noqa: E402
 from .config import check_config, read_config  # noqa: E402
-from .errors import EnvironmentFailure, MirageError  # noqa: E402
 
 _debug = {"on": False}
 GLOBAL = ("-v", "--verbose", "-q", "--quiet", "--debug", "--config", "-V", "--version")
@@ -43,42 +44,42 @@ _USER_ERRNOS = {errno.EACCES, errno.EPERM, errno.ENOENT, errno.ENOTDIR, errno.EI
 # tests/test_cli.py checks the summaries against the commands' own help.
 COMMANDS = {
     "batch": (
-        "batch_cli",
+        "batch",
         "batch_cmd",
         "Track and report every flight of a campaign YAML, in parallel; re-runs resume.",
     ),
     "build-model": (
-        "build_model_cli",
+        "build_model",
         "build_model_cmd",
         "Build a 360-degree landmark model from images (a folder or glob) or a video.",
     ),
     "calibrate": (
-        "calibrate_cli",
+        "calibrate",
         "calibrate",
         "Calibrate the camera from chessboard or ChArUco images, a folder, a glob or a video.",
     ),
     "demo": (
-        "demo_cli",
+        "demo",
         "demo_cmd",
         "Run calibrate -> build-model -> track -> report on the sample data.",
     ),
     "inspect": (
-        "build_model_cli",
+        "build_model",
         "inspect_cmd",
         "Print a landmark model's summary; optionally plot it from above.",
     ),
     "report": (
-        "report_cli",
+        "report",
         "report_cmd",
         "Path-following errors of a pose CSV against the desired path (and the truth).",
     ),
     "synth": (
-        "synth_cli",
+        "synth",
         "synth_cmd",
         "Render a synthetic data set with exact ground truth into OUTDIR.",
     ),
     "track": (
-        "track_cli",
+        "track",
         "track_cmd",
         "Estimate the camera pose in every frame of VIDEO (a video file, or images).",
     ),

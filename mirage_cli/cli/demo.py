@@ -8,11 +8,11 @@ from pathlib import Path
 import click
 import yaml
 
+from ..errors import InputError
+from ..fileio import atomic_write, copy_file, ensure_dir, refuse_overwrite
+from ..synth import CALIB_BOARD, CALIB_SQUARE_M
 from . import ui
-from .cli_options import FOLDER, shown
-from .errors import InputError
-from .fileio import atomic_write, copy_file, ensure_dir, refuse_overwrite
-from .synth import CALIB_BOARD, CALIB_SQUARE_M
+from .options import FOLDER, shown
 
 # the package is installed editable from the repository, which holds sample_data/
 DEFAULT_SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
@@ -144,9 +144,9 @@ def demo_cmd(out, sample_data, overlay):
 # The steps call the core and the commands' own output functions, with the commands'
 # defaults (the settings dataclasses); imported inside, so that `mirage --help` stays fast.
 def _calibrate(src: Path, d: Path) -> None:
-    from .calibrate import Board, CalibOptions, detect_images
-    from .calibrate_cli import calibrate_detections
-    from .frames import resolve_inputs
+    from ..calibrate import Board, CalibOptions, detect_images
+    from ..frames import resolve_inputs
+    from .calibrate import calibrate_detections
 
     board = Board(*BOARD, SQUARE)
     det = detect_images(resolve_inputs([src / "calibration"], "board images").images, board)
@@ -154,9 +154,9 @@ def _calibrate(src: Path, d: Path) -> None:
 
 
 def _build_model(src: Path, d: Path) -> None:
-    from .build_model import BuildSettings, build_model, views_from_inputs
-    from .build_model_cli import save_model
-    from .camera import Camera
+    from ..build_model import BuildSettings, build_model, views_from_inputs
+    from ..camera import Camera
+    from .build_model import save_model
 
     t0 = time.perf_counter()
     inputs, poses = [str(src / "keyframes")], str(d / "keyframes_poses.csv")
@@ -167,12 +167,12 @@ def _build_model(src: Path, d: Path) -> None:
 
 
 def _track(src: Path, d: Path, overlay: bool) -> None:
-    from . import runtime
-    from .camera import Camera
-    from .frames import FrameSource, matching_camera
-    from .model import LandmarkModel
-    from .track import Tracker, TrackSettings
-    from .track_cli import track_to_files
+    from .. import runtime
+    from ..camera import Camera
+    from ..frames import FrameSource, matching_camera
+    from ..model import LandmarkModel
+    from ..track import Tracker, TrackSettings
+    from .track import track_to_files
 
     model = LandmarkModel.load(d / "landmark.mirage")
     frames = FrameSource([src / "orbit.mp4"])
@@ -183,10 +183,10 @@ def _track(src: Path, d: Path, overlay: bool) -> None:
 
 
 def _report(d: Path) -> None:
-    from .path import load_path
-    from .report import make_report
-    from .report_cli import publish_report
-    from .trajectory import read_pose_csv
+    from ..path import load_path
+    from ..report import make_report
+    from ..trajectory import read_pose_csv
+    from .report import publish_report
 
     desired = load_path(d / "desired_path.yaml")
     rep = make_report(read_pose_csv(d / "poses.csv"), desired, read_pose_csv(d / "orbit_truth.csv"))

@@ -11,22 +11,23 @@ import cv2
 import numpy as np
 import yaml
 
-from . import signals, synth, ui
-from .calibrate_cli import parse_board
-from .camera import Camera
-from .cli_options import FOLDER, camera_option, shown
-from .config import default_of
-from .errors import InputError, OutputError
-from .fileio import (
+from .. import signals, synth
+from ..camera import Camera
+from ..errors import InputError, OutputError
+from ..fileio import (
     atomic_path,
     atomic_write,
     ensure_dir,
     refuse_overwrite,
     video_frames_written,
 )
-from .render import Renderer, stable_rng
-from .trajectory import FrameRecord, Status, write_trajectory
-from .validate import BoundedInt, FiniteFloat, float_list
+from ..records import FrameRecord, Status
+from ..render import Renderer, stable_rng
+from ..trajectory import write_trajectory
+from . import ui
+from .calibrate import parse_board
+from .config import default_of
+from .options import FOLDER, BoundedInt, FiniteFloat, camera_option, float_list, shown
 
 MAX_SIDE = 8192  # px: an 8K frame; larger renders exhaust memory (rays per pixel)
 

@@ -6,9 +6,9 @@ import time
 
 import click
 
-from . import signals, ui
-from .boards import load_board
-from .build_model import (
+from .. import signals
+from ..boards import load_board
+from ..build_model import (
     ROI,
     UP_AXES,
     BuildSettings,
@@ -16,9 +16,20 @@ from .build_model import (
     coverage_warning,
     views_from_inputs,
 )
-from .camera import Camera
-from .cli_options import (
+from ..camera import Camera
+from ..errors import InputError
+from ..features import DETECTORS, DetectorSettings
+from ..fileio import check_writable, refuse_overwrite
+from ..frames import FrameSource, resolve_inputs, with_topic
+from ..model import REACH_DEG, LandmarkModel
+from ..plotting import TOP_VIEW_DPI, save_png, top_view_figure
+from ..viewer import check_room, record_model, rerun_module
+from . import ui
+from .config import default_of
+from .options import (
     FILE,
+    BoundedInt,
+    FiniteFloat,
     camera_option,
     file_option,
     inputs_argument,
@@ -26,15 +37,6 @@ from .cli_options import (
     shown,
     topic_option,
 )
-from .config import default_of
-from .errors import InputError
-from .features import DETECTORS, DetectorSettings
-from .fileio import check_writable, refuse_overwrite
-from .frames import FrameSource, resolve_inputs, with_topic
-from .model import REACH_DEG, LandmarkModel
-from .plotting import TOP_VIEW_DPI, save_png, top_view_figure
-from .validate import BoundedInt, FiniteFloat
-from .viewer import check_room, record_model, rerun_module
 
 
 def summary_lines(model: LandmarkModel) -> list[str]:

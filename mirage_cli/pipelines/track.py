@@ -1,0 +1,308 @@
+"""`mirage track`'s pipeline: model -> frame source -> camera -> Tracker -> smoother ->
+the pose CSV (and TUM / KITTI, overlay video, Rerun recording), written row by row.
+
+The one place the tracking set-up is written (`open_job`) and the smoother composed
+(`tracked_records`, `track`): the command, `demo`, `batch` and the benchmarks call these.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import refine, runtime, signals, smooth, track
+from ..camera import Camera
+from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
+from ..fileio import atomic_path, video_frames_written
+from ..frames import Frame, FrameSource, gray_frames, matching_camera, prefetch
+from ..logs import log
+from ..model import LandmarkModel
+from ..plotting import draw_overlay
+from ..records import FrameRecord, Status
+from ..smooth import Smoother, SmoothSettings
+from ..track import Tracker, TrackSettings, warm_up
+from ..trajectory import TRACK_COLUMNS, TrajectoryWriter
+from ..validate import When, frame_range
+from ..viewer import TrackRecording
+from .reporting import SILENT, Reporter
+
+
+@dataclass
+class TrackJob:
+    """What one tracking run reads and writes."""
+
+    source: FrameSource
+    tracker: Tracker
+    output: Path  # the pose CSV
+    first: int = 0
+    last: int | None = None  # the frame to stop before
+    every: int = 1
+    smooth: SmoothSettings = field(default_factory=SmoothSettings)
+    formats: dict[str, str] = field(default_factory=dict)  # format name -> file, e.g. tum
+    overlay: str | None = None
+    rerun: str | None = None
+
+
+@dataclass
+class TrackResult:
+    """A finished (or interrupted) run: status and inliers per frame, for the summary."""
+
+    output: Path
+    rows: list[tuple[str, int]]  # (status, inliers) per frame
+    elapsed: float  # seconds of tracking (after the solver's warm-up)
+    interrupted: KeyboardInterrupt | None = None  # raise it once the summary is out
+    records: list[tuple] = field(default_factory=list)  # with verbose: see `refusal_lines`
+
+    @property
+    def frames_per_s(self) -> float:
+        return len(self.rows) / self.elapsed if self.elapsed > 0 else float("inf")
+
+
+def tracking_camera(
+    model: LandmarkModel, camera_path, src: FrameSource, reporter: Reporter = SILENT
+) -> Camera:
+    """The camera to track `src` with: the camera file, else a bag's camera_info, else the
+    model's own (at the frames' size). Another camera than the model's is fine (a model
+    built from a phone's photos, a flight filmed by the drone's camera): the model is 3D
+    points and scale-invariant descriptors, and the tracker projects with this camera."""
+    camera, origin = model.camera, None
+    if camera_path:
+        camera, origin = Camera.load(camera_path), str(camera_path)
+    elif (info := src.camera()) is not None:
+        camera, origin = info, f"the camera_info of {src.bag.topic}"
+    if origin and not camera.same_as(model.camera, tol_px=1.0):
+        reporter.echo(
+            f"track: the model was built with another camera ({_describe(model.camera)}); "
+            f"tracking with {origin} ({_describe(camera)})"
+        )
+    return matching_camera(camera, *src.size)
+
+
+def _describe(camera: Camera) -> str:
+    return f"{camera.width}x{camera.height}, fx {camera.K[0, 0]:.0f} px"
+
+
+def open_job(
+    model: LandmarkModel,
+    source: FrameSource,
+    output,
+    camera_path=None,
+    settings: TrackSettings | None = None,
+    start: When | None = None,
+    end: When | None = None,
+    reporter: Reporter = SILENT,
+    **job,
+) -> TrackJob:
+    """The tracking set-up of `mirage track`: the camera (`tracking_camera`), the frame
+    range (an empty one fails before any output), the Tracker with `settings` (default
+    TrackSettings()) and OpenCV's threads sized for it. `job`: TrackJob's other fields."""
+    settings = settings or TrackSettings()
+    camera = tracking_camera(model, camera_path, source, reporter)
+    first, last = frame_range(start, end, source.fps)
+    if source.count == 0 and source.is_video:
+        log.warning(f"{source.video}: frame count unknown; reading until the end")
+    if settings.method == "ap3p":
+        log.warning("ap3p solves from 3 points only: for comparing solvers, not for results")
+    tracker = Tracker(model, camera, settings)
+    runtime.opencv_threads_for_two_callers()
+    return TrackJob(source, tracker, Path(output), first or 0, last, **job)
+
+
+def tracked_records(
+    frames: Iterable[Frame],
+    tracker: Tracker,
+    smoothing: SmoothSettings | None = None,
+    keep_images: bool = False,
+) -> Iterator[FrameRecord]:
+    """The tracker's records of `frames`, each smoothed (`smoothing.lag` frames late;
+    default settings when None, lag 0: each frame's own pose): what `mirage track` writes,
+    for callers that hold the frames themselves (benchmarks, tests)."""
+    return smooth.smoothed(
+        track.track_frames(frames, tracker, keep_images), smoothing or SmoothSettings()
+    )
+
+
+def warm_up_solver(reporter: Reporter = SILENT) -> None:
+    """Compile or load the pose solver before the first frame's clock starts; loading from
+    the cache (under a second) runs numba's callbacks, which would swallow a signal: held
+    meanwhile."""
+    if not refine.cached_on_disk():
+        reporter.echo("compiling the pose solver for this machine (first run only, about 10 s)")
+    with (
+        reporter.stage("load the compiled solver"),
+        signals.deferred() if refine.cached_on_disk() else contextlib.nullcontext(),
+    ):
+        warm_up()
+    signals.check()
+
+
+def track(job: TrackJob, reporter: Reporter = SILENT) -> TrackResult:
+    """Track the job's frames, writing each record to the pose CSV (and the other formats,
+    the overlay and the Rerun recording) as it comes, `job.smooth.lag` frames late.
+    Ctrl-C or SIGTERM keeps the finished frames in every output and comes back as the
+    result's `interrupted`, for the caller to raise once it has said what was kept."""
+    warm_up_solver(reporter)
+    runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
+    points = job.tracker.model.points
+    axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
+    result = _run(job, axis_m, reporter)
+    reporter.detail(f"stage tracking: {result.elapsed:.2f} s")
+    return result
+
+
+def _outputs(job: TrackJob) -> list[tuple[str, str]]:
+    return [(job.output, "csv")] + [(path, fmt) for fmt, path in job.formats.items() if path]
+
+
+def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
+    """Run the tracker over the frames and write every record to every output as it comes.
+    An interrupt keeps the finished frames (outputs renamed into place with further signals
+    held) and is returned."""
+    src, tracker, camera = job.source, job.tracker, job.tracker.camera
+    outputs = _outputs(job)
+    total = None
+    if src.count:
+        stop = min(src.count, job.last) if job.last else src.count
+        total = len(range(job.first, stop, job.every))
+    done: list[tuple[str, int]] = []  # (status, inliers) per frame, for the summary
+    decided: list[tuple] = []  # with -v: (frame, status, keyframe, inliers, matches, mode)
+    verbose = reporter.verbose()
+    interrupted = None
+    smoother = Smoother(job.smooth)
+    t_start = time.perf_counter()
+    with contextlib.ExitStack() as hold, contextlib.ExitStack() as stack:
+        # every format is offered the diagnostic columns; TUM's and KITTI's rows skip them
+        writers = [
+            stack.enter_context(TrajectoryWriter(path, fmt, TRACK_COLUMNS)) for path, fmt in outputs
+        ]
+        fps = src.fps / job.every if src.fps else 10.0
+        ov = None
+        if job.overlay:
+            ov = stack.enter_context(OverlayVideo(job.overlay, fps, camera, axis_m))
+        rrd = None
+        if job.rerun:
+            rrd = stack.enter_context(TrackRecording(job.rerun, tracker.model, camera))
+        bar = stack.enter_context(reporter.progress(total, "tracking"))
+        keep = ov is not None or rrd is not None  # the overlays draw on the colour image
+        frames = src.frames(job.first, job.last, job.every)
+        frames = prefetch(frames if keep else gray_frames(frames))
+
+        def emit(records):
+            for rec in records:
+                # a record goes to every output or to none: a signal waits until it is out
+                # (else the overlay could hold a frame fewer than the CSV)
+                with signals.deferred():
+                    for w in writers:
+                        w.write(rec)
+                    if rrd is not None:  # before the overlay, which takes the image
+                        rrd.write(rec)
+                    if ov is not None:
+                        ov.write(rec)
+                    done.append((rec.status, rec.inliers))
+                    if verbose:
+                        decided.append((rec.frame, str(rec.status), rec.keyframe, rec.inliers,
+                                        rec.matches, rec.mode))  # fmt: skip
+                        reporter.detail(frame_line(rec), 2)
+                if len(done) % 10 == 0:
+                    rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
+                    bar.update(10, f"{rate:.0f} frames/s")
+
+        try:
+            for rec in track.track_frames(frames, tracker, keep_images=keep):
+                emit(smoother.push(rec))
+            with signals.deferred():  # the last frames held back by the smoother
+                emit(smoother.flush())
+        except KeyboardInterrupt as e:
+            hold.enter_context(signals.deferred())  # a second signal waits for the files
+            emit(smoother.flush())  # the frames already tracked are kept
+            if not writers[0].rows:
+                signals.note(e, f"no frame finished; {outputs[0][0]} not written")
+                raise
+            interrupted = e
+        if not done and interrupted is None:
+            raise InputError("no frames in the selected range (check --start/--end)")
+    elapsed = time.perf_counter() - t_start
+    if interrupted is not None:
+        signals.note(interrupted, f"kept {writers[0].rows} frames in {outputs[0][0]}")
+    return TrackResult(job.output, done, elapsed, interrupted, decided)
+
+
+def nothing_found(result: TrackResult) -> None:
+    """No frame ok: say why in one line (exit 3), after the outputs are written."""
+    status = [str(r[0]) for r in result.rows]
+    if not status or Status.OK.value in status:
+        return
+    raise NothingFound(
+        f"the landmark was not found in any of the {len(status)} frames ({result.output} "
+        "written, no pose): check that --model is this landmark's model and --camera this "
+        "video's camera"
+    )
+
+
+def frame_line(rec) -> str:
+    """-vv: one line per frame, what was decided and from what."""
+    why = f" ({rec.mode})" if getattr(rec, "mode", None) else ""
+    kf = f", keyframe {rec.keyframe}" if getattr(rec, "keyframe", None) else ""
+    return (
+        f"frame {rec.frame}: {rec.status}{why}{kf}, {rec.inliers or 0} inliers of "
+        f"{rec.matches or 0} matches"
+    )
+
+
+class OverlayVideo:
+    """The overlay video, opened at the first decoded frame (whose size it takes)."""
+
+    def __init__(self, path, fps: float, camera, axis_m: float):
+        # VideoWriter reports no write error: the video must read back with its frames (one
+        # of slack: a signal can land between writing a frame and counting it)
+        # (no suffix, e.g. /dev/null: an .mp4 temporary file, so that OpenCV picks a container)
+        self._path = atomic_path(
+            path,
+            suffix=Path(path).suffix or ".mp4",
+            verify=lambda p: video_frames_written(p) >= self.n - 1,
+        )
+        self.path = path
+        self.fps, self.camera, self.axis_m = fps, camera, axis_m
+        self.writer, self.n = None, 0
+
+    def __enter__(self):
+        self.tmp = self._path.__enter__()
+        return self
+
+    def write(self, rec) -> None:
+        img, rec.image = rec.image, None
+        if img is None:
+            return
+        if self.writer is None:
+            self.writer = cv2.VideoWriter(
+                str(self.tmp),
+                cv2.VideoWriter_fourcc(*"mp4v"),
+                self.fps,
+                (img.shape[1], img.shape[0]),
+            )
+            if not self.writer.isOpened():
+                raise overlay_failure(self.path, self.tmp)
+        self.writer.write(draw_overlay(img, rec, self.camera, self.axis_m))
+        self.n += 1
+
+    def __exit__(self, *exc):
+        if self.writer is not None:
+            self.writer.release()
+        return self._path.__exit__(*exc)
+
+
+def overlay_failure(path, tmp) -> OutputError | EnvironmentFailure:
+    """Why the overlay video did not open, naming the file: a full disk is the machine's
+    failure (exit 1), anything else the output's (exit 2)."""
+    with contextlib.suppress(OSError):
+        fs = os.statvfs(Path(tmp).parent)
+        if fs.f_bavail * fs.f_frsize < (1 << 20):
+            return EnvironmentFailure(f"cannot write {path}: no space left on device")
+    return OutputError(f"cannot write the overlay video {path} (OpenCV's mp4v writer did not open)")
