@@ -28,18 +28,17 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import os
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("MKL_NUM_THREADS", "1")
-
-import numpy as np  # noqa: E402
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
+
+blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage` runs it
+
+import numpy as np  # noqa: E402
 
 from mirage_cli import __version__  # noqa: E402
 from mirage_cli.build_model import ROI, BuildSettings, build_model, views_from_inputs  # noqa: E402
@@ -101,8 +100,9 @@ def forward_scene(jobs: int = 1) -> Path:
     import cv2
 
     from mirage_cli import synth
+    from mirage_cli.records import FrameRecord, Status
     from mirage_cli.render import Renderer, stable_rng
-    from mirage_cli.trajectory import FrameRecord, Status, write_trajectory
+    from mirage_cli.trajectory import write_trajectory
 
     tmp = out.with_suffix(".partial")
     shutil.rmtree(tmp, ignore_errors=True)

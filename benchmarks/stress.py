@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import importlib.util
-import os
 import shutil
 import subprocess
 import sys
@@ -46,26 +45,27 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # numpy's BLAS in the calling thread,
-os.environ.setdefault("MKL_NUM_THREADS", "1")  # as the mirage command runs it
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
+
+blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage` runs it
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from mirage_cli import __version__, smooth, track  # noqa: E402
+from mirage_cli import __version__  # noqa: E402
 from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
+from mirage_cli.pipelines.track import tracked_records  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
 from mirage_cli.runtime import keep_freed_memory, opencv_threads_for_two_callers  # noqa: E402
-from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
-from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
+from mirage_cli.tracking import Tracker, TrackSettings  # noqa: E402
+from mirage_cli.tracking.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
 
 keep_freed_memory()  # as `mirage track` runs (every system here gets it: one process)
@@ -192,12 +192,12 @@ def get_model(keyframes: Path, camera: Camera) -> LandmarkModel:
 # systems: each returns per frame (pose or None, sigma_pos_m, sigma_rot_deg) and seconds
 # --------------------------------------------------------------------------------------
 def run_mirage(frames, model, camera, lag=SmoothSettings.lag):
-    """`mirage track`'s loop (track.run, then the smoother) with its default settings,
+    """`mirage track`'s loop (the tracker, then the smoother) with its default settings,
     frames in memory."""
     tr = Tracker(model, camera, TrackSettings())
     held = (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
     t0 = time.perf_counter()
-    recs = smooth.run(track.run(held, tr), SmoothSettings(lag=lag))
+    recs = tracked_records(held, tr, SmoothSettings(lag=lag))
     out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
     return out, time.perf_counter() - t0
 

@@ -31,27 +31,27 @@ import time
 from pathlib import Path
 
 ENV = dict(os.environ)  # the commands run in the caller's environment, as a user's would
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the mirage command sets it
-os.environ.setdefault("MKL_NUM_THREADS", "1")
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
+
+blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage` runs it
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from mirage_cli import smooth, track  # noqa: E402
 from mirage_cli.build_model import BuildSettings, build_model, views_from_inputs  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
+from mirage_cli.pipelines.track import tracked_records  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
 from mirage_cli.runtime import keep_freed_memory, opencv_threads_for_two_callers  # noqa: E402
-from mirage_cli.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.solver import METHODS  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
-from mirage_cli.track import Tracker, TrackSettings  # noqa: E402
+from mirage_cli.tracking import Tracker, TrackSettings  # noqa: E402
+from mirage_cli.tracking.smooth import SmoothSettings  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
 
 keep_freed_memory()  # as `mirage track` runs (every system here gets it: one process)
@@ -79,11 +79,11 @@ def get_model(camera: Camera, path: Path | None) -> LandmarkModel:
 
 
 def run_mirage(frames, model, camera, method):
-    """`mirage track`'s loop (track.run, then the smoother) over frames held in memory."""
+    """`mirage track`'s loop (the tracker, then the smoother) over frames held in memory."""
     tr = Tracker(model, camera, TrackSettings(method=method))
     t0 = time.perf_counter()
     held = (Frame(i, i, float("nan"), f) for i, f in enumerate(frames))
-    recs = smooth.run(track.run(held, tr), SmoothSettings())
+    recs = tracked_records(held, tr, SmoothSettings())
     poses = [rec.pose if rec.ok else None for rec in recs]
     return poses, time.perf_counter() - t0
 

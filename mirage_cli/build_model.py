@@ -648,7 +648,8 @@ def build_model(
 def _check(X, kf, feat, track, norm, kps, poses, camera, settings) -> list:
     """Leave-one-keyframe-out check of the model (model_check.py), with the tracker's
     covariance of a pose."""
-    from .track import TrackSettings, frame_covariances
+    from .tracking import TrackSettings
+    from .tracking.gating import frame_covariances
 
     if not len(X):
         return []
@@ -662,7 +663,7 @@ def _check(X, kf, feat, track, norm, kps, poses, camera, settings) -> list:
 
     def covariances(est, n, points):
         return frame_covariances(
-            est, n, camera, points, ts.huber_px, rms, ts.model_error_points, 1.0
+            est, n, camera, points, ts.refine.huber_px, rms, ts.model_error_points, 1.0
         )
 
     return model_check.check_keyframes(

@@ -1,4 +1,5 @@
-"""Process-wide settings a video pipeline needs from the C allocator and OpenCV.
+"""Process-wide settings a video pipeline needs from numpy's BLAS, the C allocator and
+OpenCV: the one place the command, its workers and the benchmarks take them from.
 
 OpenCV allocates each detection's image pyramid afresh (an upsampled box is tens of MB)
 and frees it again. glibc serves blocks that large straight from the kernel and gives
@@ -21,6 +22,20 @@ MMAP_THRESHOLD = 32 << 20  # glibc's largest on 64-bit: smaller blocks come from
 TRIM_THRESHOLD = 256 << 20  # free memory the heap keeps before giving it back
 
 _applied: bool | None = None
+
+
+def blas_in_calling_thread() -> None:
+    """numpy's BLAS in the calling thread unless the environment says otherwise; to be
+    called before numpy is imported (this module imports nothing that loads it).
+
+    mirage keeps both cores busy with its own threads (decoding ahead, detecting ahead);
+    OpenBLAS's spinning helper threads would fight them for the cores over small matrix
+    products (sample orbit: 42 -> 62 frames/s without them). An empty value counts as
+    unset, as OpenBLAS reads it (sample orbit: 57-65 frames/s with OPENBLAS_NUM_THREADS=
+    against 86-92 with 1, interleaved)."""
+    for var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        if not os.environ.get(var, "").strip():
+            os.environ[var] = "1"
 
 
 def keep_freed_memory() -> bool:

@@ -143,7 +143,7 @@ def _checkout_untouched():
 def _terminal_state_per_test():
     """Each test starts with `ui` as a fresh process has it: a CLI run in this process with
     --quiet or -v (a test, or a module's fixture) would leave it so for the next test."""
-    from mirage_cli import ui
+    from mirage_cli.cli import ui
 
     ui._state.update(quiet=False, verbose=0)
     yield

@@ -13,7 +13,8 @@ from mirage_cli.features import guided_match
 from mirage_cli.model import LandmarkModel, ground_points, point_twins
 from mirage_cli.pose import Pose, look_at
 from mirage_cli.solver import PoseEstimate
-from mirage_cli.track import Tracker, TrackSettings, unambiguous_pose
+from mirage_cli.tracking import Tracker, TrackSettings
+from mirage_cli.tracking.relocalise import unambiguous_pose
 from mirage_cli.trajectory import read_pose_csv, row_pose
 
 CAM = Camera.from_params(640, 480, 520.0)
@@ -258,11 +259,10 @@ def test_the_evidence_counts_the_matches_that_vote(model):
 
 
 def _track_gate(tr, X, uv, mode, reference):
-    from mirage_cli.solver import RefineOptions, solve_pose
+    from mirage_cli.solver import solve_pose
 
-    s = tr.s
-    est = solve_pose(X, uv, tr.camera, reference, s.method,
-                     refine=RefineOptions(reject_px=s.reject_px, huber_px=s.huber_px))  # fmt: skip
+    s = tr.settings
+    est = solve_pose(X, uv, tr.camera, reference, s.method, refine=s.refine)
     return tr._gate(est, len(X), mode, False, np.ones(len(X), bool), (X, uv))
 
 
@@ -306,8 +306,8 @@ def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, m
     and is too vague: the frame ends there (a full-frame detection and a relocalisation
     would see the same view, 200 ms more a frame on the 4 m orbit). A `lost` guided pose
     (the prediction was off) still goes on to the whole frame and relocalisation."""
-    from mirage_cli import track
-    from mirage_cli.trajectory import FrameRecord, Status
+    from mirage_cli.records import FrameRecord, Status
+    from mirage_cli.tracking import schedule, tracker
 
     gray = np.zeros(model.camera.size[::-1], np.uint8)
     feats = (np.full((50, 2), 100, np.float32), np.zeros((50, 128), np.float32))
@@ -316,9 +316,9 @@ def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, m
         (Status.LOST, 2, 1),
     ):
         shapes, reloc = [], []
-        monkeypatch.setattr(
-            track, "detect", lambda img, det, s=shapes: s.append(img.shape) or feats
-        )
+        fake = lambda img, det, s=shapes: s.append(img.shape) or feats  # noqa: E731
+        monkeypatch.setattr(tracker, "detect", fake)  # the whole frame
+        monkeypatch.setattr(schedule, "detect", fake)  # a box, the probe
         monkeypatch.setattr(Tracker, "_guided", lambda *a, g=guided: FrameRecord(g, mode="detect"))
         monkeypatch.setattr(
             Tracker, "_relocalise", lambda *a, r=reloc: r.append(1) or FrameRecord(Status.LOST)
@@ -335,8 +335,8 @@ def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeyp
     """Lost for a while: a half-size probe between full searches, which goes on to the
     whole frame only when it finds the landmark. Lost for more than 12 frames (a
     look-away), the whole frame every 6th frame and the probe every other frame."""
-    from mirage_cli import track
-    from mirage_cli.trajectory import FrameRecord, Status
+    from mirage_cli.records import FrameRecord, Status
+    from mirage_cli.tracking import schedule, tracker
 
     gray = np.zeros(model.camera.size[::-1], np.uint8)
     feats = (np.full((50, 2), 100, np.float32), np.zeros((50, 128), np.float32))
@@ -356,11 +356,12 @@ def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeyp
         (20, Status.UNCERTAIN, ["half", "full"]),
     ):
         sizes, relocs = [], iter([probe_finds, Status.LOST])
-        monkeypatch.setattr(
-            track, "detect",
+        fake = (  # noqa: E731
             lambda img, det, s=sizes: s.append("full" if img.shape == gray.shape else "half")
-            or feats,
-        )  # fmt: skip
+            or feats
+        )
+        monkeypatch.setattr(tracker, "detect", fake)  # the whole frame
+        monkeypatch.setattr(schedule, "detect", fake)  # the probe
         monkeypatch.setattr(
             Tracker, "_relocalise", lambda *a, r=relocs: FrameRecord(next(r), mode="relocalise")
         )

@@ -13,8 +13,8 @@ import pytest
 from conftest import SAMPLE, own_signal_handlers
 
 from mirage_cli import cli
-from mirage_cli.batch import OUTPUTS, load_campaign
 from mirage_cli.frames import FrameSource
+from mirage_cli.pipelines.campaign import OUTPUTS, load_campaign
 
 try:
     import distributed

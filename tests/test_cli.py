@@ -10,7 +10,7 @@ from conftest import assert_one_line_error
 
 from mirage_cli import __version__
 from mirage_cli.cli import COMMANDS, cli
-from mirage_cli.config import load_config
+from mirage_cli.cli.config import check_config, read_config
 
 HEAVY = ("cv2", "numpy", "numba", "pandas", "scipy", "matplotlib", "yaml")
 
@@ -76,13 +76,17 @@ def test_missing_config(mirage, tmp_path):
 
 
 def test_config_layering(tmp_path):
-    cfg, src = load_config(cwd=tmp_path)
-    assert src is None and cfg["synth"]["noise"] == 1.5
+    """The project file's values over the command's defaults (what click's default_map
+    does with them); the defaults it does not name survive."""
+    defaults = {p.name: p.default for p in cli.commands["synth"].params}
+    raw, src = read_config(None, tmp_path)
+    assert src is None and defaults["noise"] == 1.5
     (tmp_path / "mirage.yaml").write_text("synth:\n  noise: 0.5\n  jpeg-quality: 90\n")
-    cfg, src = load_config(cwd=tmp_path)
+    raw, src = read_config(None, tmp_path)
     assert src.name == "mirage.yaml"
-    assert cfg["synth"]["noise"] == 0.5 and cfg["synth"]["jpeg_quality"] == 90
-    assert cfg["synth"]["seed"] == 0  # untouched defaults survive
+    cfg = defaults | check_config(raw, cli.commands, src)["synth"]
+    assert cfg["noise"] == 0.5 and cfg["jpeg_quality"] == 90
+    assert cfg["seed"] == 0  # untouched defaults survive
 
 
 def test_project_config_used_and_flags_win(mirage, tmp_path):

@@ -11,8 +11,8 @@ from conftest import ROOT, assert_one_line_error, run_here
 from mirage_cli.build_model import BuildSettings
 from mirage_cli.calibrate import CalibOptions
 from mirage_cli.cli import cli
-from mirage_cli.config import check_config, read_config
-from mirage_cli.track import TrackSettings
+from mirage_cli.cli.config import check_config, read_config
+from mirage_cli.tracking import TrackSettings
 
 EXAMPLE = ROOT / "configs" / "example-mirage.yaml"
 
@@ -67,7 +67,7 @@ def test_click_defaults_are_the_core_settings():
     opts = {n: {p.name: p.default for p in c.params} for n, c in cli.commands.items()}
     assert opts["track"]["redetect_every"] == TrackSettings.redetect_every
     assert opts["track"]["min_inliers"] == TrackSettings.min_inliers
-    assert opts["track"]["max_rmse"] == TrackSettings.max_rmse_px
+    assert opts["track"]["max_rmse"] == TrackSettings.max_ok_rmse_px
     assert opts["track"]["method"] == TrackSettings.method
     assert opts["build-model"]["spacing_deg"] == BuildSettings.spacing_deg
     assert opts["build-model"]["max_reproj_px"] == BuildSettings.max_reproj_px
@@ -83,7 +83,7 @@ def test_help_shows_the_core_defaults(mirage):
     flat = " ".join(p.stdout.split())
     assert "--redetect-every INTEGER Full feature" in flat
     assert f"[default: {TrackSettings.redetect_every}; x>=1]" in flat
-    assert f"[default: {TrackSettings.max_rmse_px}; x>0]" in flat
+    assert f"[default: {TrackSettings.max_ok_rmse_px}; x>0]" in flat
 
 
 @pytest.mark.parametrize(

@@ -1158,7 +1158,7 @@ def test_bad_mplbackend_is_a_warning_not_an_unexpected_error(world):
 
 
 def test_out_of_memory_is_one_line_exit_1(capsys, monkeypatch):
-    from mirage_cli import synth_cli
+    from mirage_cli.cli import synth as synth_cli
 
     def no_memory(*a, **k):
         raise MemoryError()
@@ -1203,7 +1203,7 @@ def test_model_box_with_nan_projections_is_the_whole_frame_without_a_warning(sam
 
     from mirage_cli.model import LandmarkModel
     from mirage_cli.pose import Pose
-    from mirage_cli.track import Tracker, TrackSettings
+    from mirage_cli.tracking import Tracker, TrackSettings
 
     model = LandmarkModel.load(sample_model)
     tracker = Tracker(model, model.camera, TrackSettings())

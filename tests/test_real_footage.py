@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from conftest import SAMPLE
 
-from mirage_cli import smooth, track
 from mirage_cli.build_model import (
     ROI,
     BuildSettings,
@@ -29,17 +28,11 @@ from mirage_cli.evidence import (
 from mirage_cli.frames import FrameSource
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pose import Pose, look_at
+from mirage_cli.records import FrameRecord, Measurement, Reason, Status
 from mirage_cli.solver import PoseEstimate
-from mirage_cli.track import Tracker, TrackSettings
-from mirage_cli.trajectory import (
-    TRACK_COLUMNS,
-    FrameRecord,
-    Measurement,
-    Reason,
-    Status,
-    read_pose_csv,
-    row_pose,
-)
+from mirage_cli.tracking import Tracker, TrackSettings, smooth, track_frames
+from mirage_cli.tracking.relocalise import unambiguous_pose
+from mirage_cli.trajectory import TRACK_COLUMNS, read_pose_csv, row_pose
 
 TARGET = [0.0, 0.0, 0.28]
 
@@ -150,7 +143,7 @@ def test_a_y_up_or_minus_z_up_pose_file_gives_the_same_poses(tmp_path):
         views = views_from_inputs([str(d)], cam, s, poses_csv=d / "poses.csv")
         model = build_model(views, cam, s).model
         assert model.meta["up"]["axis"] == axis
-        recs = list(track.run(iter(frames), Tracker(model, cam, TrackSettings())))
+        recs = list(track_frames(iter(frames), Tracker(model, cam, TrackSettings())))
         out[axis] = [(r.status, r.pose if r.pose is None else Pose(r.pose.R @ M, r.pose.t))
                      for r in recs]  # fmt: skip
     ref = out["+z"]
@@ -203,12 +196,12 @@ def test_random_matches_never_make_a_pose():
         n = int(rng.integers(60, 200))
         X = P[rng.choice(len(P), n, replace=False)]
         uv = rng.uniform([0, 0], [640, 480], (n, 2))
-        est = track.unambiguous_pose(X, uv, np.ones(n, bool), cam, None, s)
+        est = unambiguous_pose(X, uv, np.ones(n, bool), cam, None, s)
         if isinstance(est, Status) or not est.success:
             continue
         k = int(est.inliers.sum())
         area = search_area(uv)
-        p = chance_inlier_probability(s.ransac_px, area)
+        p = chance_inlier_probability(s.ransac.threshold_px, area)
         false_ok += k >= s.min_inliers and is_evidence(n, k, p, 500, s.max_false_alarms)
     assert false_ok == 0
 
@@ -314,7 +307,8 @@ def test_stills_are_not_smoothed_a_smooth_path_is():
     rng = np.random.default_rng(0)
     stills = [look_at([0.7 * np.cos(a), 0.7 * np.sin(a), 0.5], [0, 0, 0])
               for a in rng.uniform(-1.2, 1.2, 40)]  # fmt: skip
-    out = list(smooth.run((_record(i, p) for i, p in enumerate(stills)), smooth.SmoothSettings()))
+    records = (_record(i, p) for i, p in enumerate(stills))
+    out = list(smooth.smoothed(records, smooth.SmoothSettings()))
     moved = [r.pose.distance_to(p) for r, p in zip(out, stills, strict=True)]
     assert np.median(moved) < 1e-12 and max(moved) < 1e-4  # (a window left with a few
     # poses after dropping the others as outliers may still nudge one by 0.05 mm)
@@ -323,6 +317,6 @@ def test_stills_are_not_smoothed_a_smooth_path_is():
         p = look_at([1.5 * np.cos(a), 1.5 * np.sin(a), 0.5], [0, 0, 0.3])
         orbit.append(Pose.from_center(p.R_wc, p.center + rng.normal(0, 0.02, 3)))
     recs = (_record(i, p, sigma=0.02) for i, p in enumerate(orbit))  # a far camera's sigma
-    out = list(smooth.run(recs, smooth.SmoothSettings()))
+    out = list(smooth.smoothed(recs, smooth.SmoothSettings()))
     moved = [r.pose.distance_to(p) for r, p in zip(out, orbit, strict=True)]
     assert np.median(moved) > 0.005

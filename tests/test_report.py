@@ -9,8 +9,9 @@ from conftest import assert_one_line_error
 from mirage_cli.errors import InputError
 from mirage_cli.path import CirclePath, load_path, path_from_dict, wrap_deg
 from mirage_cli.pose import Pose, look_at, matrix_from_rpy
+from mirage_cli.records import FrameRecord, Status
 from mirage_cli.report import longest_run, make_report
-from mirage_cli.trajectory import FrameRecord, Status, read_pose_csv, write_trajectory
+from mirage_cli.trajectory import read_pose_csv, write_trajectory
 
 LOOK = (0.0, 0.0, 0.28)
 

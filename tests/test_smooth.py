@@ -10,16 +10,16 @@ import pytest
 import scipy.linalg
 
 from mirage_cli.pose import Pose, look_at, rodrigues, rodrigues_many, rotvec, rotvecs
-from mirage_cli.smooth import (
+from mirage_cli.records import FrameRecord, Measurement, Status
+from mirage_cli.solver import sigmas
+from mirage_cli.tracking.smooth import (
     _BAND,
     Smoother,
     SmoothSettings,
     _band_layout,
-    run,
+    smoothed,
     world_covariance,
 )
-from mirage_cli.solver import sigmas
-from mirage_cli.trajectory import FrameRecord, Measurement, Status
 
 FPS = 30.0
 SIG_W, SIG_V = np.radians(0.3), 0.02  # per-frame 1-sigma: rotation (rad), translation (m)
@@ -80,7 +80,7 @@ def test_independent_frames_get_more_accurate_and_stay_honest():
     truth = _orbit(150)
     recs = _measure(truth, np.random.default_rng(2))
     raw_pe, raw_re = _errors(recs, truth)
-    out = list(run(recs, SmoothSettings()))
+    out = list(smoothed(recs, SmoothSettings()))
     assert [r.frame for r in out] == list(range(150))
     assert all(r.status == Status.OK for r in out)
     pe, re = _errors(out, truth)
@@ -100,7 +100,7 @@ def test_a_flowed_run_counts_as_one_measurement():
     truth = _orbit(150)
     anchors = [i - i % 5 for i in range(150)]
     recs = _measure(truth, np.random.default_rng(3), anchors, repeat_error=True)
-    out = list(run(recs, SmoothSettings()))
+    out = list(smoothed(recs, SmoothSettings()))
     pe, _ = _errors(out, truth)
     sp = np.array([r.sigma_pos_m for r in out])
     assert np.sqrt(np.mean(pe**2)) / np.sqrt(np.mean(sp**2)) < 1.3
@@ -113,7 +113,7 @@ def test_a_pose_that_does_not_fit_neither_moves_its_neighbours_nor_is_changed():
     wrong = Pose(bad.pose.R, bad.pose.t + np.array([0.8, 0.0, 0.0]))  # 0.8 m off
     bad.pose = wrong
     bad.measurement = Measurement(wrong, bad.measurement.cov, np.zeros((6, 6)), 30)
-    out = list(run(recs, SmoothSettings()))
+    out = list(smoothed(recs, SmoothSettings()))
     assert out[30].pose is wrong  # as tracked: the smoother does not decide it
     pe, _ = _errors(out[:30] + out[31:], truth[:30] + truth[31:])
     assert pe.max() < 0.05, pe.max()
@@ -130,8 +130,8 @@ def test_nothing_is_smoothed_across_a_gap():
         r.frame, r.time_s = i + 10, (i + 10) / FPS
     gap = [FrameRecord(Status.LOST, frame=20 + j, time_s=(20 + j) / FPS) for j in range(10)]
     stream = recs[:20] + gap + recs[20:]
-    alone = [r.pose for r in run([_copy(r) for r in recs[:20]], s)]
-    out = list(run(stream, s))
+    alone = [r.pose for r in smoothed([_copy(r) for r in recs[:20]], s)]
+    out = list(smoothed(stream, s))
     assert [r.frame for r in out] == list(range(50))
     assert all(r.status == Status.LOST for r in out[20:30])
     for r, p in zip(out[:20], alone, strict=True):
@@ -179,7 +179,7 @@ def test_an_uncertain_pose_becomes_ok_when_its_neighbours_pin_it():
     vague.measurement = Measurement(m.pose, m.cov, m.cov_shared, 20, max_sigma_pos_m=limit)
     vague.status, vague.pose, vague.frame, vague.time_s = Status.UNCERTAIN, None, 20, 20 / FPS
     recs[20] = vague
-    out = list(run(recs, SmoothSettings()))
+    out = list(smoothed(recs, SmoothSettings()))
     assert out[20].status == Status.OK and out[20].sigma_pos_m <= limit
     assert out[20].pose.distance_to(truth[20]) < 3 * out[20].sigma_pos_m
 
@@ -189,10 +189,10 @@ def test_an_interrupt_writes_the_frames_the_smoother_held(sample_model, tmp_path
     (smoothed with what came), so the CSV has every tracked frame; exit 130."""
     from conftest import SAMPLE, run_here
 
-    from mirage_cli import track
+    from mirage_cli.pipelines import track
     from mirage_cli.trajectory import read_pose_csv
 
-    real_run = track.run
+    real_run = track.track_frames
 
     def thirty_then_interrupt(frames, tracker, **kw):
         for i, rec in enumerate(real_run(frames, tracker, **kw)):
@@ -200,7 +200,7 @@ def test_an_interrupt_writes_the_frames_the_smoother_held(sample_model, tmp_path
             if i == 29:
                 raise KeyboardInterrupt
 
-    monkeypatch.setattr(track, "run", thirty_then_interrupt)
+    monkeypatch.setattr(track, "track_frames", thirty_then_interrupt)
     out = tmp_path / "p.csv"
     r = run_here("track", SAMPLE / "orbit.mp4", "--model", sample_model, "-o", out)
     assert r.returncode == 130 and "kept 30 frames in" in r.stderr, r.stderr
@@ -247,7 +247,7 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
     anchor), plus a second difference of each frame triple weighted by the white-noise
     acceleration prior, q = sigma_a^2 dt^3 (rotation in rad). In the 9 frames one has no
     pose and two share an anchor (a flowed frame); 3 frames are the shortest with a prior."""
-    from mirage_cli.smooth import _M, smooth_window
+    from mirage_cli.tracking.smooth import WorldMeasurement, smooth_window
 
     rng = np.random.default_rng(5)
     n, dt = len(anchors), 1 / 30
@@ -263,8 +263,8 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
         center = np.array([0.1, 0.02, 0.0]) * i * dt + rng.multivariate_normal(
             np.zeros(3), cov[3:, 3:] / 10
         )
-        window.append(_M(np.eye(3), center, np.linalg.inv(cov), np.zeros((6, 6)), anchor,
-                         1.0, 10.0))  # fmt: skip
+        window.append(WorldMeasurement(np.eye(3), center, np.linalg.inv(cov), np.zeros((6, 6)),
+                                       anchor, 1.0, 10.0))  # fmt: skip
     q = np.array([np.radians(40.0) ** 2] * 3 + [3.0**2] * 3) * dt**3
     H, b = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
     for i, m in enumerate(window):
@@ -294,7 +294,7 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
 
 
 def _M_of(pose, sig_w=SIG_W, sig_v=SIG_V):
-    from mirage_cli.smooth import prepare
+    from mirage_cli.tracking.smooth import prepare
 
     cov = np.diag([sig_w**2] * 3 + [sig_v**2] * 3)
     return prepare(Measurement(pose, cov, np.zeros((6, 6))))
@@ -304,7 +304,7 @@ def test_a_frame_between_poses_at_a_constant_rate_is_on_the_path():
     """Noise-free poses turning 20 deg a frame at a constant rate, one frame without a pose:
     the MAP is the path itself (no residual, no second difference), reached in one step
     only from a start on it (the missing frame interpolated halfway, at the right rate)."""
-    from mirage_cli.smooth import smooth_window
+    from mirage_cli.tracking.smooth import smooth_window
 
     n, dt = 7, 1 / 30
     truth = []
@@ -321,7 +321,7 @@ def test_a_frame_between_poses_at_a_constant_rate_is_on_the_path():
 def test_outliers_are_dropped_down_to_two_poses():
     """A wild pose is dropped while two others remain (3 poses: the frame keeps its
     smoothed pose). (Two poses always fit a constant-velocity path: none is ever wild.)"""
-    from mirage_cli.smooth import smooth_window
+    from mirage_cli.tracking.smooth import smooth_window
 
     truth = _orbit(3)
     window = [_M_of(T) for T in truth]
@@ -348,7 +348,7 @@ def test_the_smoother_windows_the_stretch_and_times_the_prior(fps):
     `max_gap` separates from it (a gap of exactly 3 frames is bridged, 4 split), the
     prior's dt is the median step of the stamps (or 1 / fps without stamps), and the
     model's shared error is added back to the smoothed covariance."""
-    from mirage_cli.smooth import prepare, smooth_window
+    from mirage_cli.tracking.smooth import prepare, smooth_window
 
     n, k, lag = 30, 14, 12
     truth = _orbit(n)
@@ -360,7 +360,7 @@ def test_the_smoother_windows_the_stretch_and_times_the_prior(fps):
     for i in (3, 4, 5, 6, 11, 12, 13, 15, 16, 17, 23, 24, 25, 26):
         recs[i] = FrameRecord(Status.LOST, frame=i, time_s=times[i])
     s = SmoothSettings(lag=lag, fps=30.0)
-    got = {r.frame: r for r in run([copy_record(r) for r in recs], s)}[k]
+    got = {r.frame: r for r in smoothed([copy_record(r) for r in recs], s)}[k]
     window = [prepare(r.measurement) if r.measurement else None for r in recs[7:23]]
     dt = 1 / fps if fps else 1 / 30
     pose, cov = smooth_window(window, k - 7, float(f"{dt:.4g}"), s)
@@ -380,13 +380,13 @@ def copy_record(r):
 def test_the_smoothed_pose_is_gated_like_a_tracked_one():
     """ok only when both sigmas are within the frame's own limits (at the limit: ok)."""
     truth = _orbit(9)
-    base = {r.frame: r for r in run(_records(truth, [i / 30 for i in range(9)]),
+    base = {r.frame: r for r in smoothed(_records(truth, [i / 30 for i in range(9)]),
                                     SmoothSettings(lag=4))}[4]  # fmt: skip
     pos, rot = base.sigma_pos_m, base.sigma_rot_deg
     for max_pos, max_rot, want in ((pos, rot, Status.OK), (pos * 0.99, 10 * rot, Status.UNCERTAIN),
                                    (10 * pos, rot * 0.99, Status.UNCERTAIN)):  # fmt: skip
         recs = _records(truth, [i / 30 for i in range(9)], max_pos=max_pos, max_rot=max_rot)
-        got = {r.frame: r for r in run(recs, SmoothSettings(lag=4))}[4]
+        got = {r.frame: r for r in smoothed(recs, SmoothSettings(lag=4))}[4]
         assert got.status == want, (max_pos, max_rot, got.status)
         assert (got.pose is None) == (want == Status.UNCERTAIN)
 
@@ -395,7 +395,7 @@ def test_a_lag_of_one_smooths_with_min_side_one():
     truth = _orbit(5)
     recs = _records(truth, [i / 30 for i in range(5)])
     tracked = recs[2].pose
-    got = list(run(recs, SmoothSettings(lag=1, min_side=1)))
+    got = list(smoothed(recs, SmoothSettings(lag=1, min_side=1)))
     assert got[2].status == Status.OK and got[2].pose.distance_to(tracked) > 1e-6
 
 
@@ -404,7 +404,7 @@ def test_the_smoothing_time_is_added_to_the_frame_time():
     recs = _measure(_orbit(20), np.random.default_rng(8))
     for r in recs:
         r.ms = 5.0
-    got = list(run(recs, SmoothSettings(lag=5)))
-    smoothed = [g for g in got[5:15] if g.ms != 5.0]
-    assert len(smoothed) == 10  # every frame with 3 poses either side took some time
-    assert all(5.0 < g.ms < 5.0 + 1000 for g in smoothed), [g.ms for g in smoothed]
+    got = list(smoothed(recs, SmoothSettings(lag=5)))
+    timed = [g for g in got[5:15] if g.ms != 5.0]
+    assert len(timed) == 10  # every frame with 3 poses either side took some time
+    assert all(5.0 < g.ms < 5.0 + 1000 for g in timed), [g.ms for g in timed]

@@ -202,8 +202,8 @@ def test_default_scene_unchanged_keyframe_bytes(scene):
 
 def test_default_orbit_truth_unchanged():
     """The committed truth CSV is what the default orbit path and visibility give."""
+    from mirage_cli.cli.synth import _look_away
     from mirage_cli.synth import landmark_visibility
-    from mirage_cli.synth_cli import _look_away
     from mirage_cli.trajectory import row_pose
 
     truth = read_pose_csv(SAMPLE / "orbit_truth.csv")

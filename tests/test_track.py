@@ -11,14 +11,16 @@ import pandas as pd
 import pytest
 from conftest import SAMPLE, assert_one_line_error, run_mirage
 
-from mirage_cli import smooth, track
 from mirage_cli.camera import Camera
 from mirage_cli.frames import Frame, FrameSource
 from mirage_cli.model import LandmarkModel
-from mirage_cli.smooth import SmoothSettings
+from mirage_cli.pipelines.track import tracked_records
+from mirage_cli.records import Status
 from mirage_cli.synth import LANDMARK_TARGET
-from mirage_cli.track import Tracker, TrackSettings
-from mirage_cli.trajectory import POSE_COLUMNS, Status, read_pose_csv, read_trajectory, row_pose
+from mirage_cli.tracking import Tracker, TrackSettings, schedule, track_frames
+from mirage_cli.tracking import tracker as tracker_module
+from mirage_cli.tracking.smooth import SmoothSettings
+from mirage_cli.trajectory import POSE_COLUMNS, read_pose_csv, read_trajectory, row_pose
 
 IN_VIEW = 0.3  # share of the landmark inside the image
 
@@ -134,14 +136,15 @@ def test_csv_tum_kitti_of_one_run_agree(orbit_run):
 
 
 def test_run_yields_the_cli_poses(orbit_run, sample_model):
-    """track.run then smooth.run in-process give the rows the CLI wrote (the first 40
-    frames; their smoothing windows end 15 frames later, inside the 60 tracked)."""
+    """tracked_records (the tracker, then the smoother) in-process gives the rows the CLI
+    wrote (the first 40 frames; their smoothing windows end 15 frames later, inside the 60
+    tracked)."""
     csv, _, _ = orbit_run
     cli = read_pose_csv(csv).iloc[:40]
     model = LandmarkModel.load(sample_model)
     src = FrameSource([SAMPLE / "orbit.mp4"])
     tracker = Tracker(model, model.camera, TrackSettings())
-    recs = list(smooth.run(track.run(src.frames(end=60), tracker), SmoothSettings()))[:40]
+    recs = list(tracked_records(src.frames(end=60), tracker, SmoothSettings()))[:40]
     assert [r.frame for r in recs] == list(range(40))
     assert [str(r.status) for r in recs] == cli["status"].tolist()
     assert np.allclose([r.time_s for r in recs], cli["time_s"], atol=1e-6)
@@ -364,9 +367,9 @@ def test_detection_ahead_gives_the_serial_run_poses(sample_model, monkeypatch):
     frames = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(380, 520))
 
     def records(worker):
-        monkeypatch.setattr(track, "_worker", lambda: worker)
+        monkeypatch.setattr(schedule, "_worker", lambda: worker)
         tracker = Tracker(model, model.camera, TrackSettings())
-        return list(track.run(iter(frames), tracker))
+        return list(track_frames(iter(frames), tracker))
 
     inline = _Inline()
     serial = records(inline)
@@ -396,15 +399,16 @@ def test_lost_frames_are_searched_ahead_on_the_worker(sample_model, monkeypatch)
     frames = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(415, 450))  # look-away at 427
     tracker = Tracker(model, model.camera, TrackSettings())
     here = Counter()  # frame -> detections on the tracking thread
-    detect = track.detect
+    detect = schedule.detect
 
     def counted(gray, detector, *args):
         if detector is tracker.detector:
             here[tracker._frame_no] += 1
         return detect(gray, detector, *args)
 
-    monkeypatch.setattr(track, "detect", counted)
-    recs = list(track.run(iter(frames), tracker))
+    monkeypatch.setattr(schedule, "detect", counted)  # where the tracker detects
+    monkeypatch.setattr(tracker_module, "detect", counted)
+    recs = list(track_frames(iter(frames), tracker))
     lost = [str(r.status) == "lost" for r in recs]
     first = lost.index(True)
     assert all(lost[first:]) and len(recs) - first >= 20
@@ -427,7 +431,7 @@ def test_the_first_frame_is_not_searched_ahead(sample_model, monkeypatch):
         return start(self, frame_no, kind, *args)
 
     monkeypatch.setattr(Tracker, "_start", recorded)
-    recs = list(track.run(iter(frames), tracker))
+    recs = list(track_frames(iter(frames), tracker))
     assert recs[0].ok and recs[0].mode == "relocalise"
     assert started and all(kind == "box" for _, kind in started), started
 
@@ -440,8 +444,8 @@ def test_a_forked_child_tracks_with_a_worker_of_its_own(sample_model):
     model = LandmarkModel.load(sample_model)
     frames = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 20))
     tracker = Tracker(model, model.camera, TrackSettings())
-    parent = [r.status for r in track.run(iter(frames), tracker)]  # the parent's worker ran
-    assert track._WORKER is not None
+    parent = [r.status for r in track_frames(iter(frames), tracker)]  # the parent's worker ran
+    assert schedule._WORKER is not None
     with mp.get_context("fork").Pool(1) as pool:
         child = pool.apply_async(_track_statuses, (sample_model,)).get(timeout=60)
     assert child == [str(s) for s in parent]
@@ -451,7 +455,7 @@ def _track_statuses(model_path):
     model = LandmarkModel.load(model_path)
     frames = FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 20)
     tracker = Tracker(model, model.camera, TrackSettings())
-    return [str(r.status) for r in track.run(frames, tracker)]
+    return [str(r.status) for r in track_frames(frames, tracker)]
 
 
 def test_dropped_frames_are_detected_not_flowed_astray(sample_model):
@@ -464,9 +468,9 @@ def test_dropped_frames_are_detected_not_flowed_astray(sample_model):
     images = [f.image for f in FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 50)]
     kept = [*range(15), *range(23, 50)]  # frames 15-22 dropped
     tracker = Tracker(model, model.camera, TrackSettings())
-    assert tracker.s.flow_levels == 1
+    assert tracker.settings.flow_levels == 1
     frames = (Frame(i, i, i / 30, images[i]) for i in kept)
-    recs = list(track.run(frames, tracker))
+    recs = list(track_frames(frames, tracker))
     assert all(r.ok for r in recs)
     err = [r.pose.distance_to(row_pose(truth.iloc[r.frame])) for r in recs]
     assert max(err) < 0.01  # 1 cm; 3.1 mm measured
@@ -493,7 +497,7 @@ def test_flow_holds_through_auto_exposure_steps(sample_model):
             )
             for f in src
         ]
-        recs = list(track.run(frames, Tracker(model, model.camera, TrackSettings())))
+        recs = list(track_frames(frames, Tracker(model, model.camera, TrackSettings())))
         assert all(r.ok for r in recs)
         err = [r.pose.distance_to(row_pose(truth.iloc[r.frame])) for r in recs]
         return [r.mode for r in recs].count("detect"), np.median(err), max(err)

@@ -4,11 +4,10 @@ import pytest
 
 from mirage_cli.errors import InputError
 from mirage_cli.pose import Pose
+from mirage_cli.records import FrameRecord, Status
 from mirage_cli.trajectory import (
     FORMATS,
     POSE_COLUMNS,
-    FrameRecord,
-    Status,
     TrajectoryWriter,
     read_pose_csv,
     read_trajectory,
@@ -179,7 +178,9 @@ def test_a_new_format_is_one_entry_and_one_row_function(tmp_path, monkeypatch, c
 
     import click
 
-    from mirage_cli import track, track_cli, trajectory
+    from mirage_cli import trajectory
+    from mirage_cli.cli import track as track_cli
+    from mirage_cli.pipelines import track as pipeline
 
     def xyz_row(rec, index, extra):  # the one function
         return " ".join(f"{v:.6f}" for v in rec.pose.center) + "\n" if rec.ok else None
@@ -195,7 +196,7 @@ def test_a_new_format_is_one_entry_and_one_row_function(tmp_path, monkeypatch, c
     monkeypatch.setitem(trajectory.FORMATS, "xyz", xyz)  # the one entry
 
     # the option: after --tum and --kitti, with its help, parameter named by the format
-    cmd = click.command("t")(track_cli.also_write_options(lambda **kw: None))
+    cmd = click.command("t")(track_cli.format_options(lambda **kw: None))
     assert [p.opts for p in cmd.params] == [["--tum"], ["--kitti"], ["--xyz"]]
     help_text = " ".join(cmd.get_help(click.Context(cmd)).split())
     assert "--xyz FILE Also write the camera centres." in help_text
@@ -207,12 +208,13 @@ def test_a_new_format_is_one_entry_and_one_row_function(tmp_path, monkeypatch, c
         FrameRecord(Status.LOST, None, 1, 1 / 30),
         FrameRecord(Status.OK, poses[1], 2, 2 / 30),
     ]
-    monkeypatch.setattr(track, "run", lambda frames, tracker, keep_images: iter(recs))
-    monkeypatch.setattr(track_cli, "warm_up", lambda: None)
+    monkeypatch.setattr(pipeline, "track_frames", lambda frames, tracker, keep_images: iter(recs))
+    monkeypatch.setattr(pipeline, "warm_up", lambda: None)
     src = SimpleNamespace(count=3, fps=30.0, frames=lambda first, last, every: iter(()))
     tracker = SimpleNamespace(model=SimpleNamespace(points=np.zeros((0, 3))), camera=None)
     also = {"tum": tmp_path / "p.tum", "xyz": tmp_path / "p.xyz"}
-    track_cli.track_to_files(src, tracker, tmp_path / "p.csv", also=also)
+    job = pipeline.TrackJob(src, tracker, tmp_path / "p.csv", formats=also)
+    track_cli.print_summary(pipeline.track(job))
     assert "track: 3 frames, 2 ok" in capsys.readouterr().out
 
     assert len(read_pose_csv(tmp_path / "p.csv")) == 3

@@ -13,11 +13,12 @@ import pandas as pd
 import pytest
 from conftest import SAMPLE, assert_one_line_error, own_signal_handlers, small_tmpfs
 
-from mirage_cli import cli, track, track_cli, viewer
+from mirage_cli import cli, viewer
 from mirage_cli.errors import EnvironmentFailure, InputError
 from mirage_cli.model import LandmarkModel
+from mirage_cli.pipelines import track as pipeline
 from mirage_cli.pose import matrix_from_quat
-from mirage_cli.trajectory import FrameRecord, Status
+from mirage_cli.records import FrameRecord, Status
 
 try:  # through mirage, so that rerun starts as it does in the CLI (its Rust log quiet)
     rr = viewer.rerun_module()
@@ -172,7 +173,7 @@ def test_without_rerun_sdk_is_one_line(sample_model, tmp_path, capsys, monkeypat
 
 
 def test_mirage_imports_rerun_only_for_a_recording():
-    code = "import sys, mirage_cli.track_cli, mirage_cli.build_model_cli as m; "
+    code = "import sys, mirage_cli.cli.track, mirage_cli.cli.build_model as m; "
     code += "print('rerun' in sys.modules)"
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert p.stdout.strip() == "False", p.stderr
@@ -187,14 +188,16 @@ def fake_track(monkeypatch, recs, stop=KeyboardInterrupt):
         if stop is not None:
             raise stop
 
-    monkeypatch.setattr(track, "run", run)
-    monkeypatch.setattr(track_cli, "warm_up", lambda: None)
+    monkeypatch.setattr(pipeline, "track_frames", run)
+    monkeypatch.setattr(pipeline, "warm_up", lambda: None)
 
 
 def track_to(model, csv, rrd):
     src = SimpleNamespace(count=10, fps=10.0, frames=lambda first, last, every: iter(()))
     tracker = SimpleNamespace(model=model, camera=model.camera)
-    track_cli.track_to_files(src, tracker, csv, rerun=rrd)
+    result = pipeline.track(pipeline.TrackJob(src, tracker, csv, rerun=rrd))
+    if result.interrupted is not None:
+        raise result.interrupted  # as the command does, once the outputs are in place
 
 
 @needs_rerun

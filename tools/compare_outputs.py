@@ -15,8 +15,10 @@ model archive, and stress.py's printed table for those systems.
 
 `compare` compares every file of the two folders: CSVs cell by cell except the `ms` column
 (the time a frame took) and `seconds` (a flight's), batch's done.json without its
-timings and output hashes, the stress table without its `fps` column and footnote, every other
-file byte for byte (model archives by their members), and lists what differs.
+timings, output hashes and input sizes and mtimes; the checkout's and the output folder's absolute
+paths, which outputs quote, are replaced by placeholders; the stress table is written
+without its `fps`; every other file byte for byte (model archives by their members); it
+lists what differs.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from pathlib import Path
 root, out, scenes = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3].split(",")
 spec = importlib.util.spec_from_file_location("stress", root / "benchmarks" / "stress.py")
 st = importlib.util.module_from_spec(spec)
+sys.modules["stress"] = st  # its dataclasses look their module up
 spec.loader.exec_module(st)
 st.opencv_threads_for_two_callers()
 camera = st.Camera.load(st.SAMPLE / "camera_truth.yaml")
@@ -79,6 +82,7 @@ for s in scenes:
 def produce(root: Path, out: Path, scenes: str) -> None:
     root, out = root.resolve(), out.resolve()
     out.mkdir(parents=True, exist_ok=True)
+    (out / "root.txt").write_text(f"{root}\n{out}\n")  # paths in outputs: see `_normal`
     sample = root / "sample_data"
     demo = out / "demo"
     _run(root, ["demo", "--out", str(demo), "--sample-data", str(sample)], out)
@@ -104,8 +108,16 @@ def produce(root: Path, out: Path, scenes: str) -> None:
                         scenes], check=True, env=env, cwd=root)  # fmt: skip
 
 
-def _csv_rows(path: Path) -> list[list[str]]:
-    rows = list(csv.reader(io.StringIO(path.read_text())))
+def _normal(text: str, roots: list[str]) -> str:
+    """Outputs name their inputs by absolute path (a model's source, a campaign's files):
+    the checkout and the output folder become placeholders."""
+    for i, r in enumerate(roots):
+        text = text.replace(r, f"<root{i}>")
+    return text
+
+
+def _csv_rows(path: Path, roots: list[str]) -> list[list[str]]:
+    rows = list(csv.reader(io.StringIO(_normal(path.read_text(), roots))))
     for timing in TIMING_COLUMNS:
         if rows and timing in rows[0]:
             k = rows[0].index(timing)
@@ -113,41 +125,58 @@ def _csv_rows(path: Path) -> list[list[str]]:
     return rows
 
 
-def _same(a: Path, b: Path) -> str | None:
-    """None when equal, else a short description."""
+def _same(a: Path, b: Path, ra_: list[str], rb_: list[str]) -> str | None:
+    """None when equal, else a short description (`ra_`, `rb_`: the two sides' roots)."""
     if a.suffix == ".csv":
-        ra, rb = _csv_rows(a), _csv_rows(b)
+        ra, rb = _csv_rows(a, ra_), _csv_rows(b, rb_)
         if ra == rb:
             return None
         diff = [i for i, (x, y) in enumerate(zip(ra, rb, strict=False)) if x != y]
         return f"{len(ra)} vs {len(rb)} rows, {len(diff)} rows differ, first {diff[:3]}"
     if a.name == "done.json":  # batch's marker: its timing and the pose CSV's hash vary
-        ja, jb = (json.loads(x.read_text()) for x in (a, b))
+        ja, jb = (json.loads(_normal(x.read_text(), r)) for x, r in ((a, ra_), (b, rb_)))
         for j in (ja, jb):
             j["result"].pop("seconds")
             j.pop("outputs")
+            j["inputs"] = [i[0] for i in j["inputs"]]  # the files (compared on their own)
         return None if ja == jb else "marker differs (inputs, options or result)"
     if zipfile.is_zipfile(a) and zipfile.is_zipfile(b):
         za, zb = zipfile.ZipFile(a), zipfile.ZipFile(b)
         na, nb = sorted(za.namelist()), sorted(zb.namelist())
         if na != nb:
             return f"members {na} vs {nb}"
-        bad = [n for n in na if za.read(n) != zb.read(n)]
+        bad = [n for n in na if _member(za, n, ra_) != _member(zb, n, rb_)]
         return f"members differ: {bad}" if bad else None
-    return None if a.read_bytes() == b.read_bytes() else "bytes differ"
+    if a.suffix in (".yaml", ".json", ".txt", ".tum", ".kitti"):
+        same = _normal(a.read_text(), ra_) == _normal(b.read_text(), rb_)
+    else:
+        same = a.read_bytes() == b.read_bytes()
+    return None if same else "bytes differ"
+
+
+def _member(z: zipfile.ZipFile, name: str, roots: list[str]) -> bytes:
+    data = z.read(name)
+    return _normal(data.decode(), roots).encode() if name.endswith(".json") else data
+
+
+def _roots(out: Path) -> list[str]:
+    f = out / "root.txt"
+    lines = f.read_text().split() if f.is_file() else []
+    return sorted(lines + [str(out.resolve())], key=len, reverse=True)
 
 
 def compare(old: Path, new: Path) -> int:
     fa = {p.relative_to(old) for p in old.rglob("*") if p.is_file()}
     fb = {p.relative_to(new) for p in new.rglob("*") if p.is_file()}
-    fa = {p for p in fa if p.name not in SKIP_FILES}
-    fb = {p for p in fb if p.name not in SKIP_FILES}
+    fa = {p for p in fa if p.name not in SKIP_FILES and str(p) != "root.txt"}
+    fb = {p for p in fb if p.name not in SKIP_FILES and str(p) != "root.txt"}
+    roots_a, roots_b = (_roots(d) for d in (old, new))
     bad = 0
     for p in sorted(fa ^ fb):
         print(f"only in {'old' if p in fa else 'new'}: {p}")
         bad += 1
     for p in sorted(fa & fb):
-        msg = _same(old / p, new / p)
+        msg = _same(old / p, new / p, roots_a, roots_b)
         print(f"{'same' if msg is None else 'DIFFERS'}: {p}" + ("" if msg is None else f": {msg}"))
         bad += msg is not None
     print(f"{len(fa & fb)} files compared, {bad} differ or are missing")

@@ -14,15 +14,9 @@ import sys
 import traceback
 from collections.abc import Mapping
 
-# mirage keeps both cores busy with its own threads (decoding ahead, detecting ahead);
-# OpenBLAS's spinning helper threads would fight them for the cores over small matrix
-# products (sample orbit: 42 -> 62 frames/s without them), so numpy's BLAS runs in the
-# calling thread unless the environment says otherwise. Set before numpy is imported. An
-# empty value counts as unset, as OpenBLAS reads it (sample orbit: 57-65 frames/s with
-# OPENBLAS_NUM_THREADS= against 86-92 with 1, interleaved).
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    if not os.environ.get(_var, "").strip():
-        os.environ[_var] = "1"
+from ..runtime import blas_in_calling_thread
+
+blas_in_calling_thread()  # before numpy is imported (runtime.py says why)
 
 import click  # noqa: E402
 

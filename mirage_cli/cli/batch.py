@@ -8,7 +8,9 @@ import time
 import click
 
 from .. import signals
-from ..batch import (
+from ..errors import InputError
+from ..fileio import check_writable, ensure_dir
+from ..pipelines.campaign import (
     CAMPAIGN_CSV,
     CAMPAIGN_PNG,
     FlightResult,
@@ -17,8 +19,6 @@ from ..batch import (
     run_campaign,
     write_campaign_csv,
 )
-from ..errors import InputError
-from ..fileio import check_writable, ensure_dir
 from ..plotting import save_png
 from . import ui
 from .options import FILE, FOLDER, BoundedInt

@@ -8,20 +8,15 @@ import click
 
 from .. import signals
 from ..boards import load_board
-from ..build_model import (
-    ROI,
-    UP_AXES,
-    BuildSettings,
-    build_model,
-    coverage_warning,
-    views_from_inputs,
-)
+from ..build_model import ROI, UP_AXES, BuildResult, BuildSettings, coverage_warning
 from ..camera import Camera
 from ..errors import InputError
 from ..features import DETECTORS, DetectorSettings
 from ..fileio import check_writable, refuse_overwrite
 from ..frames import FrameSource, resolve_inputs, with_topic
 from ..model import REACH_DEG, LandmarkModel
+from ..pipelines.build import build
+from ..pipelines.build import save_model as write_model
 from ..plotting import TOP_VIEW_DPI, save_png, top_view_figure
 from ..viewer import check_room, record_model, rerun_module
 from . import ui
@@ -39,7 +34,7 @@ from .options import (
 )
 
 
-def summary_lines(model: LandmarkModel) -> list[str]:
+def model_lines(model: LandmarkModel) -> list[str]:
     s = model.summary()
     return [
         f"keyframes          {s['keyframes']} ({s['detector']}, every {s['spacing_deg']:.0f} deg)",
@@ -215,10 +210,7 @@ def build_model_cmd(
     )
     stages = _Stages()
     try:
-        views = views_from_inputs(
-            sources, camera, settings, poses_path, board, lambda k, n: stages("views", k, n)
-        )
-        res = build_model(views, camera, settings, stages)
+        res = build(sources, camera, settings, poses_path, board, stages)
     finally:
         stages.close()
     source = {
@@ -245,34 +237,12 @@ def _bag_camera(inputs) -> Camera:
     return camera
 
 
-def save_model(res, output, source: dict, t0: float) -> None:
+def save_model(res: BuildResult, output, source: dict, t0: float) -> None:
     """Write a built model (with where it came from), warn about weak parts, summarise."""
-    model = res.model
-    if len(model.points) == 0:
-        raise InputError(
-            "no 3D points could be triangulated: are the views close enough in direction "
-            "(see --spacing-deg) and the poses right? (try --roi none)"
-        )
-    model.meta["source"] = source
-    model.save(output)
-    weak = [kf.name for kf in model.keyframes if kf.n_linked < 30]
-    if weak:
-        ui.log.warning(
-            f"{len(weak)} keyframe(s) have fewer than 30 3D points ({', '.join(weak[:5])}); "
-            "tracking from those directions will be weak"
-        )
-    gap = coverage_warning(model)
-    if gap:
-        ui.log.warning(gap)
-    suspects = (model.meta.get("check") or {}).get("suspects") or []
-    if suspects:
-        ui.log.warning(
-            f"keyframe(s) {', '.join(suspects[:5])} disagree with the points the other keyframes "
-            "see by over 4 sigma: check their rows in the pose file"
-        )
+    write_model(res, output, source)
     r = res.rejected
     ui.echo(f"build-model: wrote {output} in {time.perf_counter() - t0:.1f} s")
-    for line in summary_lines(model):
+    for line in model_lines(res.model):
         ui.echo("  " + line)
     ui.echo(
         f"  candidates         {res.tracks} tracks from {res.matches} matches in {res.pairs} "
@@ -304,7 +274,7 @@ def inspect_cmd(model_path, plot, rerun_path):
     ui.echo(f"{model_path}: format version {model.version}, loaded in {dt * 1000:.0f} ms")
     c = model.camera
     ui.echo(f"  camera             {c.width}x{c.height}, fx {c.fx:.1f} px")
-    for line in summary_lines(model):
+    for line in model_lines(model):
         ui.echo("  " + line)
     kept = model.meta.get("kept") or {}
     for kf in model.keyframes:

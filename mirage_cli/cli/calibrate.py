@@ -6,11 +6,9 @@ import click
 
 from ..boards import MARKER_FRACTION, Board, parse_size
 from ..calibrate import CalibOptions, Calibration, Detections, detect_images, detect_video
-from ..calibrate import calibrate as run_calibration
-from ..camera import Camera
 from ..fileio import check_writable, refuse_overwrite
 from ..frames import FrameSource, resolve_inputs, with_topic
-from ..plotting import CALIBRATION_DPI, calibration_figure, save_png
+from ..pipelines.calibrate import calibrate_to_file
 from . import ui
 from .config import default_of
 from .options import (
@@ -182,33 +180,8 @@ def calibrate(
 
 def calibrate_detections(det: Detections, target: Board, opts: CalibOptions, output, report=None):
     """Calibrate from detected views, write the camera YAML (and plot), print the summary."""
-    for w in det.warnings:
-        ui.log.warning(w)
-    calib = run_calibration(det, target, opts)
-    cam = Camera(calib.K, calib.dist, *calib.image_size, calib.rms_px, _meta(calib, det, target))
-    cam.save(output)
-    if report:
-        save_png(calibration_figure(calib), report, CALIBRATION_DPI)
+    calib = calibrate_to_file(det, target, opts, output, report)
     _summary(calib, det, target, output, report)
-
-
-def _meta(c: Calibration, det: Detections, b: Board) -> dict:
-    meta = {
-        "pattern": b.pattern,
-        "board": b.label,
-        "square_m": float(b.square_m),
-        "views_found": len(det.views),
-        "views_used": len(c.views),
-        "views_rejected": len(c.rejected),
-        "view_names": ",".join(v.name for v in c.views),
-        "per_view_errors_px": [round(float(e), 4) for e in c.view_errors_px],
-        "std_intrinsics": [c.std_intrinsics[k] for k in ("fx", "fy", "cx", "cy")],
-        "std_distortion": [v for k, v in c.std_intrinsics.items() if k not in _K_NAMES],
-    }
-    if b.pattern == "charuco":
-        meta["marker_m"] = float(b.marker_size_m)
-        meta["dictionary"] = b.dictionary
-    return meta
 
 
 def _summary(c: Calibration, det: Detections, b: Board, output, report) -> None:

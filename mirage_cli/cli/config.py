@@ -173,41 +173,6 @@ def _suggest(name: str, valid: list[str], what: str) -> str:
     return f" (valid {what or 'keys'}: {', '.join(valid)})"
 
 
-def command_defaults(commands: dict[str, click.Command]) -> dict[str, dict]:
-    """Every command's option defaults (what `--help` shows), keyed like a config file."""
-    return {
-        name: {
-            p.name: p.default
-            for p in cmd.params
-            if isinstance(p.default, str | int | float | bool | tuple | list)
-        }
-        for name, cmd in commands.items()
-    }
-
-
-def merge(base: dict, over: dict) -> dict:
-    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in base.items()}
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = merge(out[k], v)
-        else:
-            out[k] = v
-    return out
-
-
-def load_config(
-    path: str | None = None, cwd: Path | None = None, commands: dict | None = None
-) -> tuple[dict, Path | None]:
-    """The effective options (defaults merged with the checked project file) keyed by
-    command then parameter name, and the project file they came from (None if none)."""
-    if commands is None:
-        from ..cli import cli
-
-        commands = cli.commands
-    raw, src = read_config(path, cwd)
-    return merge(command_defaults(commands), check_config(raw, commands, src)), src
-
-
 def default_of(owner, name: str):
     """The default of a core settings field or function parameter, for a click option:
     the value is written once, in the core, and `--help` still shows it."""

@@ -15,7 +15,7 @@ from . import ui
 from .options import FOLDER, shown
 
 # the package is installed editable from the repository, which holds sample_data/
-DEFAULT_SAMPLE = Path(__file__).resolve().parents[1] / "sample_data"
+DEFAULT_SAMPLE = Path(__file__).resolve().parents[2] / "sample_data"
 NEEDED = [
     "calibration",
     "keyframes",
@@ -141,8 +141,8 @@ def demo_cmd(out, sample_data, overlay):
     ui.echo(f"      open {d / 'report.png'}; inside {d}, mirage.yaml supplies the options")
 
 
-# The steps call the core and the commands' own output functions, with the commands'
-# defaults (the settings dataclasses); imported inside, so that `mirage --help` stays fast.
+# The steps call the pipelines with the commands' defaults (the settings dataclasses) and
+# print what the commands print; imported inside, so that `mirage --help` stays fast.
 def _calibrate(src: Path, d: Path) -> None:
     from ..calibrate import Board, CalibOptions, detect_images
     from ..frames import resolve_inputs
@@ -154,40 +154,37 @@ def _calibrate(src: Path, d: Path) -> None:
 
 
 def _build_model(src: Path, d: Path) -> None:
-    from ..build_model import BuildSettings, build_model, views_from_inputs
+    from ..build_model import BuildSettings
     from ..camera import Camera
+    from ..pipelines.build import build
     from .build_model import save_model
 
     t0 = time.perf_counter()
     inputs, poses = [str(src / "keyframes")], str(d / "keyframes_poses.csv")
-    camera, settings = Camera.load(d / "camera.yaml"), BuildSettings()
-    views = views_from_inputs(inputs, camera, settings, poses_csv=poses)
-    res = build_model(views, camera, settings)
+    res = build(inputs, Camera.load(d / "camera.yaml"), BuildSettings(), poses_csv=poses)
     save_model(res, d / "landmark.mirage", {"inputs": inputs, "poses": poses, "board": None}, t0)
 
 
 def _track(src: Path, d: Path, overlay: bool) -> None:
-    from .. import runtime
-    from ..camera import Camera
-    from ..frames import FrameSource, matching_camera
+    from ..frames import FrameSource
     from ..model import LandmarkModel
-    from ..track import Tracker, TrackSettings
-    from .track import track_to_files
+    from ..pipelines.track import open_job, track
+    from .track import print_summary
 
     model = LandmarkModel.load(d / "landmark.mirage")
-    frames = FrameSource([src / "orbit.mp4"])
-    camera = matching_camera(Camera.load(d / "camera.yaml"), *frames.size)
-    tracker = Tracker(model, camera, TrackSettings())
-    runtime.opencv_threads_for_two_callers()
-    track_to_files(frames, tracker, d / "poses.csv", overlay=d / "overlay.mp4" if overlay else None)
+    job = open_job(
+        model, FrameSource([src / "orbit.mp4"]), d / "poses.csv", d / "camera.yaml",
+        reporter=ui, overlay=d / "overlay.mp4" if overlay else None,
+    )  # fmt: skip
+    result = track(job, reporter=ui)
+    print_summary(result)
+    if result.interrupted is not None:
+        raise result.interrupted
 
 
 def _report(d: Path) -> None:
-    from ..path import load_path
-    from ..report import make_report
-    from ..trajectory import read_pose_csv
+    from ..pipelines.report import report
     from .report import publish_report
 
-    desired = load_path(d / "desired_path.yaml")
-    rep = make_report(read_pose_csv(d / "poses.csv"), desired, read_pose_csv(d / "orbit_truth.csv"))
-    publish_report(rep, desired, d / "report.csv", d / "summary.yaml", d / "report.png")
+    res = report(d / "poses.csv", d / "desired_path.yaml", d / "orbit_truth.csv")
+    publish_report(res.report, res.desired, d / "report.csv", d / "summary.yaml", d / "report.png")

@@ -5,37 +5,19 @@ from __future__ import annotations
 import os
 
 import click
-import numpy as np
-import yaml
 
 from ..errors import InputError
-from ..fileio import atomic_write, check_writable, refuse_overwrite
-from ..path import load_path
-from ..plotting import REPORT_DPI, report_figure, save_png
-from ..report import Report, make_report
-from ..trajectory import read_pose_csv
-from ..truth import BodyToCamera, TruthSettings, load_truth
+from ..fileio import check_writable, refuse_overwrite
+from ..pipelines.report import nothing_tracked, report, write_report
+from ..report import Report
+from ..truth import BodyToCamera, TruthSettings
 from . import ui
 from .options import FILE, FiniteFloat, file_option, output_option, shown
 
 _UNITS = {"_m": "m", "_deg": "deg"}
 
 
-def write_report(rep: Report, output, summary_path=None, plot_path=None, path=None) -> None:
-    """Write report.csv (+ summary YAML, + plot), each atomically."""
-    table = rep.table.copy()
-    t = table["time_s"].to_numpy(float)  # epoch stamps (bags) need their microseconds
-    table["time_s"] = np.where(np.isfinite(t), np.char.mod("%.6f", np.nan_to_num(t)), "")
-    with atomic_write(output, newline="") as f:
-        table.to_csv(f, index=False, float_format="%.8g", lineterminator="\n")
-    if summary_path:
-        with atomic_write(summary_path) as f:
-            yaml.safe_dump(rep.summary, f, sort_keys=False)
-    if plot_path:
-        save_png(report_figure(rep, path), plot_path, REPORT_DPI)
-
-
-def summary_lines(s: dict) -> list[str]:
+def report_lines(s: dict) -> list[str]:
     """The summary as a small text table."""
     ll = s["longest_lost"]
     sec = f", {ll['seconds']:.2f} s" if ll["seconds"] is not None and ll["frames"] else ""
@@ -138,28 +120,20 @@ def report_cmd(
     for out in (output, summary, plot):
         if out:
             check_writable(out)
-    with ui.stage("read the path and the poses"):
-        desired = load_path(path)
-        table = read_pose_csv(poses)
-    ui.detail(f"path: {type(desired).__name__}, {desired.length_m:.3f} m long")
-    ui.detail(f"poses: {len(table)} frames, {(table['status'] == 'ok').sum()} ok")
     settings = TruthSettings(truth_topic, BodyToCamera.parse(truth_transform), t_offset, t_max_diff)
     if not truth and (truth_topic or truth_transform or t_offset):
         raise InputError("--truth-topic, --truth-transform and --t-offset need --truth FILE")
-    with ui.stage("read the truth"):
-        truth_df = load_truth(truth, table, settings) if truth else None
-    with ui.stage("compute the errors"):
-        rep = make_report(table, desired, truth_df)
+    res = report(poses, path, truth, settings, reporter=ui)
     with ui.stage("write the outputs"):
-        publish_report(rep, desired, output, summary, plot)
+        publish_report(res.report, res.desired, output, summary, plot)
 
 
 def publish_report(rep: Report, desired, output, summary=None, plot=None) -> None:
     """Write the report's files and print its summary."""
     write_report(rep, output, summary, plot, desired)
-    for line in summary_lines(rep.summary):
+    for line in report_lines(rep.summary):
         ui.echo(line)
     wrote = [str(p) for p in (output, summary, plot) if p]
     ui.echo(f"wrote {', '.join(wrote)}")
-    if not np.isfinite(rep.table["cross_track_m"].to_numpy(float)).any():
+    if nothing_tracked(rep):
         ui.log.warning("no frame was tracked: every error is empty")

@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .. import refine, runtime, signals, smooth, track
+from .. import refine, runtime, signals
 from ..camera import Camera
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from ..fileio import atomic_path, video_frames_written
@@ -26,8 +26,8 @@ from ..logs import log
 from ..model import LandmarkModel
 from ..plotting import draw_overlay
 from ..records import FrameRecord, Status
-from ..smooth import Smoother, SmoothSettings
-from ..track import Tracker, TrackSettings, warm_up
+from ..tracking import Tracker, TrackSettings, track_frames, warm_up
+from ..tracking.smooth import Smoother, SmoothSettings, smoothed
 from ..trajectory import TRACK_COLUMNS, TrajectoryWriter
 from ..validate import When, frame_range
 from ..viewer import TrackRecording
@@ -124,9 +124,7 @@ def tracked_records(
     """The tracker's records of `frames`, each smoothed (`smoothing.lag` frames late;
     default settings when None, lag 0: each frame's own pose): what `mirage track` writes,
     for callers that hold the frames themselves (benchmarks, tests)."""
-    return smooth.smoothed(
-        track.track_frames(frames, tracker, keep_images), smoothing or SmoothSettings()
-    )
+    return smoothed(track_frames(frames, tracker, keep_images), smoothing or SmoothSettings())
 
 
 def warm_up_solver(reporter: Reporter = SILENT) -> None:
@@ -215,7 +213,7 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
                     bar.update(10, f"{rate:.0f} frames/s")
 
         try:
-            for rec in track.track_frames(frames, tracker, keep_images=keep):
+            for rec in track_frames(frames, tracker, keep_images=keep):
                 emit(smoother.push(rec))
             with signals.deferred():  # the last frames held back by the smoother
                 emit(smoother.flush())

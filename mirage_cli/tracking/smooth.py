@@ -38,9 +38,9 @@ from functools import lru_cache
 import numpy as np
 import scipy.linalg.lapack
 
-from .pose import Pose, rodrigues_many, rotvecs
-from .records import FrameRecord, Measurement, Reason, Status
-from .solver import sigmas
+from ..pose import Pose, rodrigues_many, rotvecs
+from ..records import FrameRecord, Measurement, Reason, Status
+from ..solver import sigmas
 
 
 @dataclass
@@ -66,7 +66,7 @@ def world_covariance(cov: np.ndarray, pose: Pose) -> np.ndarray:
 
 
 @dataclass
-class _M:
+class WorldMeasurement:
     """A measurement prepared once: in W, with its information matrix."""
 
     R_wc: np.ndarray
@@ -78,7 +78,7 @@ class _M:
     max_rot: float
 
 
-def prepare(m: Measurement | None) -> _M | None:
+def prepare(m: Measurement | None) -> WorldMeasurement | None:
     if m is None:
         return None
     C = world_covariance(m.cov, m.pose)
@@ -89,7 +89,7 @@ def prepare(m: Measurement | None) -> _M | None:
     except np.linalg.LinAlgError:
         return None
     shared = world_covariance(m.cov_shared, m.pose)
-    return _M(m.pose.R.T, m.pose.center, info, shared, m.anchor, m.max_sigma_pos_m,
+    return WorldMeasurement(m.pose.R.T, m.pose.center, info, shared, m.anchor, m.max_sigma_pos_m,
               m.max_sigma_rot_deg)  # fmt: skip
 
 
@@ -169,7 +169,7 @@ def _step(use, Rm, cm, W, R, c, prior, P):
     return d.reshape(n, 6), factor
 
 
-def smooth_window(window: list[_M | None], k: int, dt: float, s: SmoothSettings):
+def smooth_window(window: list[WorldMeasurement | None], k: int, dt: float, s: SmoothSettings):
     """MAP pose and 6x6 (theta, c) covariance in W of window[k], or None when it cannot be
     smoothed (its pose is an outlier, or the window has no other pose). `window` holds one
     entry per frame (None: no pose) and no gap longer than `s.max_gap`."""
@@ -238,16 +238,16 @@ class Smoother:
     frames the tracker finished are never lost)."""
 
     def __init__(self, s: SmoothSettings):
-        self.s = s
+        self.settings = s
         self.held: deque[FrameRecord] = deque()  # lag past, the next output, lag future
-        self.prepared: deque[_M | None] = deque()  # their measurements, in W
+        self.prepared: deque[WorldMeasurement | None] = deque()  # their measurements, in W
         self.out_at = 0  # index in `held` of the next frame to give back
 
     def push(self, rec: FrameRecord) -> list[FrameRecord]:
         m = prepare(rec.measurement)  # first: an interrupt here leaves both queues alike
         self.held.append(rec)
         self.prepared.append(m)
-        return self._ready(self.s.lag)
+        return self._ready(self.settings.lag)
 
     def flush(self) -> list[FrameRecord]:
         # an interrupt between the two appends of `push` held a record without its
@@ -266,7 +266,7 @@ class Smoother:
         return done
 
     def _trim(self) -> None:
-        while self.out_at > self.s.lag:
+        while self.out_at > self.settings.lag:
             self.held.popleft()
             self.prepared.popleft()
             self.out_at -= 1
@@ -278,7 +278,7 @@ class Smoother:
         return rec
 
     def _smooth(self, k: int) -> FrameRecord:
-        s, rec, m = self.s, self.held[k], self.prepared[k]
+        s, rec, m = self.settings, self.held[k], self.prepared[k]
         if m is None or s.lag <= 0:
             return rec
         # the window: the stretch around k without a gap longer than max_gap
@@ -321,7 +321,7 @@ class Smoother:
         return rec
 
 
-def run(records: Iterable[FrameRecord], s: SmoothSettings) -> Iterator[FrameRecord]:
+def smoothed(records: Iterable[FrameRecord], s: SmoothSettings) -> Iterator[FrameRecord]:
     """The records in order, each `s.lag` frames late with its pose smoothed (only frames
     with a pose, ok or uncertain, change)."""
     sm = Smoother(s)

@@ -4,7 +4,7 @@ A campaign YAML names the flights (a video or images each, or a glob of them) an
 shared model, camera and desired path. `load_campaign` checks all of it before any work,
 so a typo in flight 40 fails in a second, not after an hour. `run_flight` is the one
 function that runs a flight, in this process, a pool worker or a Dask worker alike: the
-same track (`track_cli.track_to_files`) and report (`report.make_report`) as the two
+same track and report pipelines (pipelines/track.py, pipelines/report.py) as the two
 commands, into OUT/<name>/, then a done-marker written last. The marker records the
 inputs' sizes and mtimes, an options hash and the outputs' sizes and hashes, so a re-run
 skips a flight only when what it would write is already there, whole.
@@ -17,7 +17,6 @@ import dataclasses
 import difflib
 import glob
 import hashlib
-import io
 import json
 import os
 import signal
@@ -26,12 +25,11 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-import click
 import numpy as np
 
-from . import __version__, fileio, signals, ui
-from .errors import InputError, MirageError, cv_message
-from .validate import FRAME_OR_TIME, FiniteFloat, When
+from .. import __version__, fileio, logs, signals
+from ..errors import InputError, MirageError, cv_message
+from ..validate import When, finite_float, parse_when
 
 TOP_KEYS = ("defaults", "flights", "videos")
 TRUTH_KEYS = ("truth_topic", "truth_transform", "t_offset", "t_max_diff")  # as mirage report's
@@ -195,7 +193,7 @@ def check_outputs(campaign: Campaign) -> None:
 
 
 def _natural(p: str):
-    from .frames import natural_key
+    from ..frames import natural_key
 
     return natural_key(Path(p))
 
@@ -249,14 +247,14 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
     for key in ("start", "end"):
         value = get(key, what="frame number or seconds ('4s')")
         try:
-            when[key] = FRAME_OR_TIME.convert(value, None, None) if value is not None else None
-        except click.BadParameter as e:
-            raise InputError(f"{where}: '{key}' {e.message}") from None
+            when[key] = parse_when(value) if value is not None else None
+        except ValueError as e:
+            raise InputError(f"{where}: '{key}' {e}") from None
     s, e = when["start"], when["end"]
     if s is not None and e is not None and s.seconds == e.seconds and e.value <= s.value:
         raise InputError(f"{where}: 'end' {e} must come after 'start' {s}")
     if s is not None and e is not None and s.seconds != e.seconds:  # frames and seconds
-        from .frames import FrameSource
+        from ..frames import FrameSource
 
         try:
             fps = FrameSource([vpath]).fps
@@ -274,7 +272,7 @@ def _flight(f: dict, defaults: dict, base: Path, where: str) -> Flight:
 
 
 def _is_bag(p: Path) -> bool:
-    from .bags import is_bag_path
+    from ..bags import is_bag_path
 
     return is_bag_path(p)
 
@@ -282,7 +280,7 @@ def _is_bag(p: Path) -> bool:
 def _truth_options(get, base: Path, where: str) -> dict:
     """The truth keys, checked as `mirage report` checks its options; a transform that
     names a file is resolved against the campaign's folder."""
-    from .truth import BodyToCamera, TruthSettings
+    from ..truth import BodyToCamera, TruthSettings
 
     out: dict = {}
     topic = get("truth_topic", what="topic name")
@@ -298,16 +296,17 @@ def _truth_options(get, base: Path, where: str) -> dict:
             raise InputError(f"{where}: 'truth_transform' {e}") from None
     out["truth_transform"] = transform
     # the checks and defaults of report's --t-offset / --t-max-diff
-    for key, kind, default in (
-        ("t_offset", FiniteFloat(), TruthSettings.t_offset_s),
-        ("t_max_diff", FiniteFloat(min=0, min_open=True), TruthSettings.t_max_diff_s),
+    for key, positive, default in (
+        ("t_offset", False, TruthSettings.t_offset_s),
+        ("t_max_diff", True, TruthSettings.t_max_diff_s),
     ):
         value = get(key, what="number of seconds")
         try:
-            out[key] = default if value is None else kind.convert(value, None, None)
-        except click.BadParameter as e:
+            bound = {"min": 0, "min_open": True} if positive else {}
+            out[key] = default if value is None else finite_float(value, **bound)
+        except ValueError as e:
             above = " above 0" if key == "t_max_diff" else ""
-            msg = f"{where}: '{key}' must be a finite number of seconds{above}: {e.message}"
+            msg = f"{where}: '{key}' must be a finite number of seconds{above}: {e}"
             raise InputError(msg) from None
     return out
 
@@ -340,8 +339,6 @@ def run_flight(flight: Flight, out: str | os.PathLike) -> FlightResult:
         res = _track_and_report(flight, d)
     except MirageError as e:
         return FlightResult(flight.name, "failed", seconds=_secs(t0), reason=str(e))
-    except click.ClickException as e:
-        return FlightResult(flight.name, "failed", seconds=_secs(t0), reason=e.format_message())
     except Exception as e:  # noqa: BLE001 - one flight's bug must not stop the campaign
         reason = f"unexpected {type(e).__name__}: {cv_message(e)}"
         return FlightResult(flight.name, "failed", seconds=_secs(t0), reason=reason)
@@ -363,36 +360,29 @@ def _secs(t0: float) -> float:
 
 
 def _track_and_report(flight: Flight, d: Path) -> FlightResult:
-    """What `mirage track` then `mirage report --summary` do, without their printing."""
-    from .frames import FrameSource
-    from .model import LandmarkModel
-    from .path import load_path
-    from .report import make_report
-    from .report_cli import write_report
-    from .track import Tracker, TrackSettings
-    from .track_cli import track_to_files, tracking_camera
-    from .trajectory import read_pose_csv
-    from .truth import BodyToCamera, TruthSettings, load_truth
-    from .validate import frame_range
+    """What `mirage track` then `mirage report --summary` do (the same pipelines), silently."""
+    from ..frames import FrameSource
+    from ..model import LandmarkModel
+    from ..path import load_path
+    from ..truth import BodyToCamera, TruthSettings
+    from .report import report, write_report
+    from .track import open_job, track
 
-    desired = load_path(flight.path)
+    load_path(flight.path)  # a bad desired path fails before the tracking
     model = LandmarkModel.load(flight.model)
     src = FrameSource([flight.video])
-    camera = tracking_camera(model, flight.camera, src)
-    first, last = frame_range(flight.start, flight.end, src.fps)
-    tracker = Tracker(model, camera, TrackSettings())
-    track_to_files(src, tracker, d / "poses.csv", first, last)
-    table = read_pose_csv(d / "poses.csv")
-    truth = None
-    if flight.truth:  # a pose CSV, TUM or a bag pose topic, as `mirage report --truth`
-        opts = TruthSettings(
-            flight.truth_topic,
-            BodyToCamera.parse(flight.truth_transform),
-            flight.t_offset,
-            flight.t_max_diff,
-        )
-        truth = load_truth(flight.truth, table, opts)
-    rep = make_report(table, desired, truth)
+    job = open_job(model, src, d / "poses.csv", flight.camera, start=flight.start, end=flight.end)
+    result = track(job)
+    if result.interrupted is not None:
+        raise result.interrupted
+    settings = TruthSettings(
+        flight.truth_topic,
+        BodyToCamera.parse(flight.truth_transform),
+        flight.t_offset,
+        flight.t_max_diff,
+    )
+    # a pose CSV, TUM or a bag pose topic, as `mirage report --truth`
+    rep = report(d / "poses.csv", flight.path, flight.truth, settings).report
     write_report(rep, d / "report.csv", d / "summary.yaml")
     return result_of(flight.name, rep.table, rep.summary)
 
@@ -454,7 +444,7 @@ def fingerprint(flight: Flight) -> list:
 def options_hash(flight: Flight) -> str:
     """What, besides the input files, decides the outputs: the range, the track settings
     and the software version."""
-    from .track import TrackSettings
+    from ..tracking import TrackSettings
 
     opts = {
         "version": __version__,
@@ -524,7 +514,7 @@ def _worker_init() -> None:
     signal.signal(signal.SIGTERM, term)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
-    ui.setup(0, quiet=True)
+    logs.setup(0, quiet=True)
 
 
 def _pool_flight(flight: Flight, out: str) -> FlightResult:
@@ -543,7 +533,7 @@ def _dask_flight(flight: Flight, out: str) -> FlightResult:
     import cv2
 
     cv2.setNumThreads(1)
-    ui.setup(0, quiet=True)
+    logs.setup(0, quiet=True)
     return run_flight(flight, out)
 
 
@@ -582,9 +572,7 @@ def run_campaign(
             _run_dask(todo, out, client, got)
         elif (workers or os.cpu_count() or 1) == 1 or len(todo) <= 1:
             for f in todo:
-                with contextlib.redirect_stdout(io.StringIO()):  # one line a flight, not track's
-                    r = run_flight(f, out)
-                got(r)
+                got(run_flight(f, out))
         else:
             _run_pool(todo, out, min(workers or os.cpu_count() or 1, len(todo)), got)
     except KeyboardInterrupt as e:
@@ -684,7 +672,7 @@ def campaign_figure(results: list[FlightResult]):
     """Per flight: tracked %, then the median and p95 of the path error and (with truth)
     of the position and rotation errors, each on its own axis (they differ by orders of
     magnitude); flights that did not finish are marked."""
-    from .plotting import import_matplotlib
+    from ..plotting import import_matplotlib
 
     import_matplotlib()
     from matplotlib.figure import Figure

@@ -1,0 +1,122 @@
+"""Frame-to-frame tracking: the last detection's inliers followed with pyramidal
+Lucas-Kanade from the frame they were detected in (the anchor), then Mirage-S from the
+previous pose. A mixin of `Tracker`: it reads the tracker's prediction and gate, and keeps
+the anchor's state (`anchor_gray`, `anchor_px`, `anchor_n`, `_anchor_level`) and the points
+followed (`track_px`, `track_X`, `track_land`)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..pose import Pose
+from ..records import FrameRecord
+from ..solver import sigmas, solve_pose
+
+
+def _local_means(gray: np.ndarray, px: np.ndarray) -> np.ndarray:
+    """Mean of the 7x7 pixels around each point (nearest pixel; 0 outside the image)."""
+    h, w = gray.shape[:2]
+    ij = np.rint(px).astype(np.int64)
+    inside = (ij[:, 0] >= 3) & (ij[:, 0] < w - 3) & (ij[:, 1] >= 3) & (ij[:, 1] < h - 3)
+    out = np.zeros(len(px))
+    if inside.any():
+        ii = ij[inside]
+        x0, y0 = ii.min(axis=0) - 3
+        x1, y1 = ii.max(axis=0) + 4
+        area = cv2.blur(gray[y0:y1, x0:x1], (7, 7), borderType=cv2.BORDER_REPLICATE)
+        out[inside] = area[ii[:, 1] - y0, ii[:, 0] - x0]
+    return out
+
+
+def _deviation(res: FrameRecord, pred: Pose) -> float:
+    """How far a pose is from its prediction, in the position sigmas of its residuals."""
+    return res.pose.distance_to(pred) / max(sigmas(res.measurement.cov)[0], 1e-9)
+
+
+class FlowTracking:
+    """Optical flow between detections (a mixin of Tracker)."""
+
+    def _flow(self, gray: np.ndarray) -> FrameRecord | None:
+        a0 = self.anchor_px.reshape(-1, 1, 2)
+        lk = dict(
+            winSize=(self.settings.flow_window_px, self.settings.flow_window_px),
+            maxLevel=self.settings.flow_levels,
+            criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        # start each point where the predicted pose puts it (large motions stay within the
+        # small window's reach), or where it was in the previous frame
+        pred = self._predicted()
+        guess = self.track_px
+        if self.velocity is not None and np.all(pred.transform(self.track_X)[:, 2] > 1e-3):
+            guess = self.camera.project(self.track_X, pred).astype(np.float32)
+        tracked = self._lucas_kanade(gray, a0, guess, lk)
+        if tracked is None:
+            return None
+        # Lucas-Kanade assumes constant brightness: when the exposure changed since the
+        # anchor (auto-exposure; measured where the points flowed), flow again in the
+        # frame scaled to the anchor's brightness (the first pass's points are biased)
+        gain = self._gain(gray, *tracked)
+        if abs(gain - 1) > self.settings.flow_gain_tol:
+            gray = cv2.convertScaleAbs(gray, alpha=gain)
+            tracked = self._lucas_kanade(gray, a0, guess, lk)
+            if tracked is None:
+                return None
+        p1, good = tracked
+        if good.sum() < max(self.settings.min_flow_points, self.settings.flow_keep * self.anchor_n):
+            return None  # the flow has weakened: detect afresh
+        X, uv = self.track_X[good], p1[good]
+        est = solve_pose(
+            X,
+            uv,
+            self.camera,
+            reference_pose=self.prev_pose,
+            method=self.settings.method,
+            refine=self.settings.refine,
+        )
+        land = self.track_land[good]
+        res = self._gate(est, len(uv), "flow", True, land, (X, uv))
+        if res.ok and est.rmse_px > self.settings.flow_max_rmse_px:
+            return None  # the flow has drifted or the motion was too large: detect afresh
+        if res.ok and self.velocity is not None:
+            # points that slid along an edge bend the pose while the residuals stay small;
+            # a smooth path predicts the pose well, so a flowed pose far from the
+            # prediction (in the sigmas of its residuals) is checked by a detection
+            if _deviation(res, pred) > self.settings.flow_max_dev_sigma:
+                return None
+        if res.ok:
+            self.since_detect += 1
+            self.track_px, self.track_X = uv[est.inliers].astype(np.float32), X[est.inliers]
+            self.track_land = land[est.inliers]
+            self.anchor_px = self.anchor_px[good][est.inliers]
+            self._anchor_level = self._anchor_level[good][est.inliers]
+            res.inlier_px = self.track_px
+        return res
+
+    def _lucas_kanade(self, gray, a0, guess, lk) -> tuple[np.ndarray, np.ndarray] | None:
+        """The anchor's points in `gray` (N,2) and which of them flowed well (both ways)."""
+        try:  # from the anchor image: the error does not add up from frame to frame
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(
+                self.anchor_gray, gray, a0, guess.reshape(-1, 1, 2).copy(), **lk
+            )
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.anchor_gray, p1, a0.copy(), **lk)
+        except cv2.error:
+            return None
+        p1, p0r = p1.reshape(-1, 2), p0r.reshape(-1, 2)
+        fb = np.linalg.norm(p0r - self.anchor_px, axis=1)
+        h, w = gray.shape[:2]
+        good = (
+            (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.settings.flow_fb_px)
+            & (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+        )  # fmt: skip
+        return p1, good
+
+    def _gain(self, gray: np.ndarray, p1: np.ndarray, good: np.ndarray) -> float:
+        """The anchor's brightness over this frame's at the well-flowed points: the median
+        ratio of their 7x7 means, the same surface in both (1 with too few points)."""
+        if self._anchor_level is None:
+            self._anchor_level = _local_means(self.anchor_gray, self.anchor_px)
+        then, now = self._anchor_level[good], _local_means(gray, p1[good])
+        ok = (now > 8) & (then > 8)  # dark points say little about the gain
+        return float(np.median(then[ok] / now[ok])) if ok.sum() >= 10 else 1.0

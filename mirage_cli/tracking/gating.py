@@ -1,0 +1,170 @@
+"""The gate every pose ends in: enough consistent inliers that could not be chance, on the
+landmark itself, a small residual, a plausible motion and an uncertainty small enough to
+trust (else `uncertain`); and the pose's covariances (`frame_covariances`). A mixin of
+`Tracker`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera
+from ..evidence import chance_inlier_probability, is_evidence, search_area
+from ..records import FrameRecord, Measurement, Reason, Status
+from ..solver import PoseEstimate, RansacOptions, sandwich_covariance, sigmas
+
+RANSAC_HYPOTHESES = RansacOptions.iterations  # how many poses RANSAC tries at most
+
+
+def frame_covariances(
+    est: PoseEstimate,
+    n: int,
+    camera: Camera,
+    points=None,
+    huber_px: float = 0.5,
+    model_rms_px: float = 0.0,
+    model_error_points: float = 300.0,
+    model_error_scale: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """6x6 covariances (the solver's parametrisation) of a pose: what its residuals show,
+    and the model's own error (shared with every frame that sees the same points); the
+    pose's is their sum.
+
+    What the residuals show comes from the leverage-corrected sandwich covariance of the
+    inliers (`points`: X, uv and est.inliers; see `solver.sandwich_covariance`), so a pose
+    carried by a few bad or isolated points is as uncertain as it is; without points, the
+    solver's (J^T J)^-1 s_res^2. Errors of the model points and of keypoint localisation
+    on a face seen at an angle are shared by neighbouring points and do not average out
+    over n, so they count as the model's reprojection RMS over `model_error_points`
+    independent points: (J^T J)^-1 s_model^2 n / n_model. `model_error_scale` is what the
+    model's leave-one-keyframe-out check measured (model_check.py): how much larger a
+    pose's error is than these two predict, with the model's points and poses as they
+    are (keyframe pose errors, calibration, real pixels); the excess is added to the
+    shared part, which the smoother does not average away.
+    """
+    s2 = est.sigma_px**2
+    res = est.covariance
+    if not s2 > 0:
+        return res, np.zeros((6, 6))
+    if points is not None:
+        X, uv = points
+        inl = est.inliers
+        sw = sandwich_covariance(X[inl], uv[inl], est.pose, camera, huber_px)
+        if np.all(np.isfinite(sw)):
+            res = sw
+    shared = est.covariance * (model_rms_px**2 * n / (model_error_points * s2))
+    if model_error_scale > 1.0:
+        shared = shared + (model_error_scale**2 - 1.0) * (res + shared)
+    return res, shared
+
+
+class PoseGate:
+    """The gate and the covariances of a pose (a mixin of Tracker)."""
+
+    def _covariances(self, est: PoseEstimate, n: int, points=None):
+        return frame_covariances(
+            est, n, self.camera, points, self.settings.refine.huber_px, self.model_rms_px,
+            self.settings.model_error_points, self.model_error_scale,
+        )  # fmt: skip
+
+    def _significant(
+        self, est: PoseEstimate, n: int, mode: str, points, voting, radius_px=None
+    ) -> bool:
+        """Could the inliers be chance (evidence.py)? Wrong matches fall anywhere within the
+        guided radius of their predicted pixel while tracking (flowed points as well: the
+        flow searches no further), anywhere in the matched keypoints' box when
+        relocalising. Only the matches that could decide the pose count (`voting`:
+        matches to repeated texture or the ground are expected to pick the wrong twin)."""
+        inl = est.inliers if voting is None else est.inliers & voting
+        total = n if voting is None else int(voting.sum())
+        if mode == "relocalise" and points is not None:
+            uv = points[1] if voting is None else points[1][voting]
+            area = search_area(uv)
+        else:
+            r = radius_px or self.settings.guided_radius_px * (1 + min(self.lost_run, 3))
+            area = np.pi * r**2
+        p = chance_inlier_probability(self.settings.ransac.threshold_px, area)
+        return is_evidence(
+            total, int(inl.sum()), p, RANSAC_HYPOTHESES, self.settings.max_false_alarms
+        )
+
+    def _gate(
+        self,
+        est: PoseEstimate,
+        n: int,
+        mode: str,
+        check_jump: bool,
+        on_landmark: np.ndarray | None = None,
+        points: tuple[np.ndarray, np.ndarray] | None = None,
+        voting: np.ndarray | None = None,
+        radius_px: float | None = None,
+    ) -> FrameRecord:
+        """ok only with enough consistent inliers, enough of them on the landmark itself
+        (`on_landmark`, per match; None: all are), a small residual, a plausible motion and
+        an uncertainty small enough to trust (else `uncertain`).
+
+        `voting` (per match; None: all) are the matches that could decide the pose: the
+        inlier ratio counts among them, since matches to repeated texture or the ground are
+        expected to pick the wrong twin (a tiled floor in view is half the matches)."""
+        ninl = int(est.inliers.sum()) if est.success else 0
+        res = FrameRecord(
+            Status.LOST,
+            matches=n,
+            inliers=ninl,
+            iterations=est.iterations,
+            rmse_px=est.rmse_px,
+            mode=mode,
+            reason=Reason.FEW_INLIERS,
+        )
+        if not est.success:
+            return res
+        cov_res, cov_model = self._covariances(est, ninl, points)
+        res.sigma_pos_m, res.sigma_rot_deg = sigmas(cov_res + cov_model)
+        # with a prediction a few points can make an ok pose (their uncertainty decides
+        # below); without one, a pose needs the numbers that make RANSAC's answer unique
+        need = (
+            self.settings.min_inliers if mode == "relocalise" else self.settings.min_track_inliers
+        )
+        if ninl < need:
+            return res
+        if not self._significant(est, n, mode, points, voting, radius_px):
+            res.reason = Reason.CHANCE
+            return res
+        n_land = ninl if on_landmark is None else int((est.inliers & on_landmark).sum())
+        if n_land < min(self.settings.min_landmark_inliers, need):
+            res.reason = Reason.OFF_LANDMARK
+            return res  # the ground (or background) alone: the landmark is not in view
+        if not est.rmse_px <= self.settings.max_ok_rmse_px:
+            res.reason = Reason.RESIDUAL
+            return res
+        if est.pose.transform(np.zeros((1, 3)))[0, 2] <= 0:
+            res.reason = Reason.BEHIND
+            return res  # the landmark behind the camera
+        frames = 1 + self.lost_run  # since the previous ok pose: the limits are per frame
+        if (
+            check_jump
+            and self.prev_pose is not None
+            and (
+                est.pose.distance_to(self.prev_pose) > self.settings.max_jump_m * frames
+                or est.pose.angle_to(self.prev_pose) > self.settings.max_jump_deg * frames
+            )
+        ):
+            res.reason = Reason.JUMP
+            return res
+        max_pos = self.settings.max_sigma_pos_m
+        if points is not None:  # relative to the range: the inliers' median depth
+            depth = float(np.median(est.pose.transform(points[0][est.inliers])[:, 2]))
+            max_pos = min(max_pos, self.settings.max_sigma_range * depth)
+        res.measurement = Measurement(
+            est.pose, cov_res, cov_model, max_sigma_pos_m=max_pos,
+            max_sigma_rot_deg=self.settings.max_sigma_rot_deg,
+        )  # fmt: skip
+        if not (
+            res.sigma_pos_m <= max_pos and res.sigma_rot_deg <= self.settings.max_sigma_rot_deg
+        ):
+            res.status, res.reason = Status.UNCERTAIN, Reason.UNCERTAIN
+            self._uncertain_pose = est.pose
+            return res
+        res.status, res.pose, res.reason = Status.OK, est.pose, ""
+        if mode == "flow" and self.keyframe >= 0:
+            res.keyframe = self.model.keyframes[self.keyframe].name
+        return res

@@ -1,0 +1,114 @@
+"""Relocalisation, when lost: global recognition, descriptor matching, RANSAC on the matches
+that may vote (no twins, no ground), and the second-hypothesis test (`unambiguous_pose`).
+A mixin of `Tracker`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..camera import Camera
+from ..features import guided_match
+from ..pose import Pose
+from ..records import FrameRecord, Reason, Status
+from ..solver import PoseEstimate, solve_pose
+from .settings import TrackSettings
+
+
+def unambiguous_pose(
+    X: np.ndarray,
+    uv: np.ndarray,
+    unique: np.ndarray,
+    camera: Camera,
+    reference: Pose | None,
+    s: TrackSettings,
+) -> PoseEstimate | Status:
+    """Pose from matches with no prior pose, or why not (LOST, AMBIGUOUS).
+
+    RANSAC runs on the `unique` matches only (points without a descriptor twin), so
+    repeated texture never decides the pose. Then the second-hypothesis test: RANSAC
+    again on the unique matches the first pose does not explain; a pose distinct from the
+    first (`distinct_m` / `distinct_deg`) with at least `second_hypothesis` of its
+    support means the evidence fits two places, and the answer is AMBIGUOUS. The
+    accepted pose is refined over every match that agrees with it, twins included.
+    """
+    if unique.sum() < s.min_inliers:
+        return Status.LOST
+    kw = dict(
+        method=s.method,
+        ransac=s.ransac,
+        refine=s.refine,
+    )
+    Xu, uvu = X[unique], uv[unique]
+    first = solve_pose(Xu, uvu, camera, reference, **kw)
+    if not first.success:
+        return Status.LOST
+    n1 = int(first.inliers.sum())
+    rest = ~first.inliers
+    if rest.sum() >= max(s.min_inliers, 6):
+        second = solve_pose(Xu[rest], uvu[rest], camera, None, **kw)
+        if (
+            second.success
+            and second.inliers.sum() >= max(s.min_inliers, s.second_hypothesis * n1)
+            and (
+                second.pose.distance_to(first.pose) > s.distinct_m
+                or second.pose.angle_to(first.pose) > s.distinct_deg
+            )
+        ):
+            return Status.AMBIGUOUS
+    err = np.linalg.norm(camera.project(X, first.pose) - uv, axis=1)
+    inl = (err < s.ransac.threshold_px) & (first.pose.transform(X)[:, 2] > 0)
+    full = np.zeros(len(X), bool)
+    full[np.flatnonzero(unique)[first.inliers]] = True
+    first.inliers = full
+    if inl.sum() <= n1:
+        return first
+    final = solve_pose(
+        X[inl], uv[inl], camera, first.pose, method=s.method,
+        refine=s.refine,
+    )  # fmt: skip
+    if not final.success:
+        return first
+    full = np.zeros(len(X), bool)
+    full[np.flatnonzero(inl)[final.inliers]] = True
+    final.inliers = full
+    return final
+
+
+class Relocalisation:
+    """Relocalisation when lost (a mixin of Tracker)."""
+
+    def _probe(self, gray: np.ndarray) -> FrameRecord:
+        kps, desc = self._features("probe", self._probe_features, gray)
+        if desc is None or len(kps) < self.settings.min_inliers:
+            return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.FEW_FEATURES)
+        return self._relocalise(kps, desc)
+
+    def _relocalise(self, kps, desc) -> FrameRecord:
+        """Lost: recognise, match, and accept a pose only when the evidence is unambiguous."""
+        cands = [i for i, _ in self.model.recognize(desc, top_k=self.settings.global_keyframes)]
+        if not cands:
+            return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_RECOGNISED)
+        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        # descriptor matching whose ratio test compares distinct 3D points (the same point
+        # seen by two candidate keyframes is not a rival); no position prior: radius inf
+        anywhere = np.zeros((len(X_all), 2))
+        qi, ti = guided_match(kps, desc, anywhere, d_all, pid_all, np.inf, self.settings.ratio)
+        uv, X = kps[qi].astype(np.float64), X_all[ti]
+        # matches to repeated texture or to the ground do not vote
+        land = self.on_landmark[pid_all[ti]]
+        unique = self.votes[pid_all[ti]]
+        lost = FrameRecord(
+            Status.LOST, matches=len(qi), mode="relocalise", reason=Reason.FEW_MATCHES
+        )
+        if unique.sum() < self.settings.min_inliers:
+            return lost
+        kf = int(np.argmax(np.bincount(kf_of[ti[unique]], minlength=len(self.model.keyframes))))
+        est = unambiguous_pose(
+            X, uv, unique, self.camera, self.model.keyframes[kf].pose, self.settings
+        )
+        if isinstance(est, Status):
+            lost.status = est
+            lost.reason = Reason.AMBIGUOUS if est == Status.AMBIGUOUS else Reason.FEW_INLIERS
+            return lost
+        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv), unique)
+        return self._accept(res, est, uv, X, kf, land)

@@ -1,0 +1,146 @@
+"""Detection scheduling: which features of which frame are detected, and where, on the one
+background thread (OpenCV's detectors release the GIL). Once a frame is detected, the next
+regular detection's features (`redetect_every` + 1 frames later, in the box its pose
+predicts) are detected while the frames between are flowed; while lost, the coming frames'
+searches (the last pose's box, the half-size probe, the whole frame) while this one is
+matched. What is detected depends on the frames alone, never on timing. A mixin of
+`Tracker` (state: `_pending`, `_held_box`, `_bg_detector`)."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+
+from ..features import detect, make_detector
+
+_WORKER: ThreadPoolExecutor | None = None
+
+
+def _worker() -> ThreadPoolExecutor:
+    """The one background thread for detections (OpenCV's detectors release the GIL)."""
+    global _WORKER
+    if _WORKER is None:
+        _WORKER = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mirage-detect")
+    return _WORKER
+
+
+def _forget_worker() -> None:
+    global _WORKER
+    _WORKER = None  # a forked child has none of the parent's threads: start its own
+
+
+os.register_at_fork(after_in_child=_forget_worker)
+
+
+class DetectionSchedule:
+    """Which features are detected when, and where (a mixin of Tracker)."""
+
+    def _detect_ahead(self, ahead, shape, calm: bool = False) -> None:
+        """A frame was just detected: if flow holds, the next detection comes
+        `redetect_every` + 1 frames later, so start detecting that frame's features now, on
+        the worker thread, in the box that covers the model both where it is now and where
+        the constant-velocity prediction puts it then (a box too small to detect without
+        upsampling, a far landmark, is left to its own frame: its scale must come from
+        the box that frame predicts). Unless this detection was `calm` (within
+        `flow_max_dev_sigma` - 2 sigmas of its prediction), the job starts only once the
+        next frame has flowed: the flow's deviation check often asks for a detection right
+        there (the velocity then spans the jump from the flowed poses to the detected one),
+        which would leave the features unused, their time taken from that detection
+        (sample orbit: after 14 of the 47 detections that were not calm, after 2 of the 48
+        calm ones; a calm bound 1 sigma higher measured no faster)."""
+        self._drop("box")
+        self._held_box = None
+        k = self.lookahead
+        if not k or len(ahead) < k or ahead[k - 1] is None or ahead[k - 1].shape != shape:
+            return
+        boxes = [self._model_box(p, shape) for p in (self.prev_pose, self._predicted(k))]
+        box = None
+        if all(b is not None for b in boxes):
+            (a0, a1, a2, a3, ash), (b0, b1, b2, b3, bsh) = boxes
+            if max(b2 - b0, b3 - b1, a2 - a0, a3 - a1) < self.settings.upsample_below_px:
+                return
+            box = (min(a0, b0), min(a1, b1), max(a2, b2), max(a3, b3), min(ash, bsh))
+        self._held_box = (self._frame_no + k, "box", self._box_features, ahead[k - 1], box)
+        if calm:
+            self._start(*self._held_box)
+            self._held_box = None
+
+    def _search_ahead(self, ahead) -> None:
+        """Lost: the coming frames, if they stay lost, are searched as `lost_run` says (in
+        the box of the last pose while it is kept, then the whole frame or the half-size
+        probe), so their features are queued on the worker, as far ahead as the frames
+        are decoded, and detected while this frame is matched. What is searched depends
+        on the frames and the last pose alone; a frame that is not processed
+        (undecodable) does not count."""
+        n, box = 0, None
+        for gray in ahead[: self.lookahead]:
+            if gray is None:
+                continue
+            n += 1
+            lost_run, frame_no = self.lost_run + n, self._frame_no + n
+            if (
+                self.prev_pose is not None and lost_run <= self.PREDICT_LOST
+                and (frame_no, "lostbox") not in self._pending
+            ):  # fmt: skip
+                if box is None:  # no velocity while lost: the same box for every frame
+                    box = self._model_box(self.prev_pose, gray.shape) or ()
+                if box:
+                    self._start(frame_no, "lostbox", self._box_features, gray, box)
+                    self._pending[frame_no, "lostbox"].box = box
+            kind = self._search(lost_run)
+            if kind is not None and (frame_no, kind) not in self._pending:
+                fn = self._probe_features if kind == "probe" else detect
+                self._start(frame_no, kind, fn, gray)
+
+    def _drop(self, *kinds: str) -> None:
+        """Forget the features of those kinds detected ahead (the plan changed); those not
+        started yet are not detected at all."""
+        for key in [k for k in self._pending if k[1] in kinds]:
+            self._pending.pop(key).cancel()
+
+    def _start(self, frame_no: int, kind: str, fn, gray, *args) -> None:
+        if self._bg_detector is None:
+            self._bg_detector = make_detector(self.model.detector)
+        self._pending[frame_no, kind] = _worker().submit(fn, gray, *args, self._bg_detector)
+
+    def _features(self, kind: str, fn, gray, *args):
+        """This frame's features of that kind: detected ahead when they were, else now."""
+        job = self._pending.pop((self._frame_no, kind), None)
+        return job.result() if job is not None else fn(gray, *args, self.detector)
+
+    def _search(self, lost_run: int) -> str | None:
+        """How a lost frame is searched: 'full' (the whole frame) every `relocalise_every`
+        frames, a 'probe' between (half size: a quarter of the pixels; it goes on to the
+        whole frame only when it finds the landmark, so a far one waits for the next full
+        search). Lost for longer than `long_lost` frames (a look-away, not a dropout), the
+        whole frame every 2N frames and the probe every other frame between (None: not
+        searched), so a near landmark is found within a frame of its return."""
+        long = lost_run > self.settings.long_lost
+        if lost_run % (self.settings.relocalise_every * (2 if long else 1)) == 0:
+            return "full"
+        return None if long and lost_run % 2 else "probe"
+
+    def _probe_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
+        small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+        kps, desc = detect(small, detector)
+        return kps * np.float32(2) + np.float32(0.5), desc
+
+    def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
+        """Features in the pixel box (None: the whole frame): shrunk first when the landmark
+        looks larger than from its keyframes, else upsampled when the box is small."""
+        if box is None:
+            return detect(gray, detector)
+        x0, y0, x1, y1, shrink = box
+        crop = gray[y0:y1, x0:x1]
+        up = 1.0
+        if shrink > 1:  # the landmark larger than in its keyframes: at their scale
+            up = 1 / shrink
+            crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_AREA)
+        elif max(crop.shape) < self.settings.upsample_below_px:  # small and far: finer features
+            up = self.settings.upsample_to_px / max(crop.shape)
+            crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
+        kps, desc = detect(crop, detector)
+        return kps / np.float32(up) + np.array([x0, y0], np.float32), desc

@@ -1,0 +1,120 @@
+"""Where to look while tracking: the pixel box where the predicted pose puts the model (and
+how much to shrink or upsample it), and guided matching of the nearby keyframes' points
+near their predicted pixels. A mixin of `Tracker`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..features import guided_match
+from ..pose import Pose
+from ..records import FrameRecord, Reason, Status
+from ..solver import solve_pose
+
+# a shrunk box keeps this much more resolution than the keyframes' (sub-pixel keypoints):
+# 720p / 1080p orbits against the sample's model, p95 2.52 / 2.62 mm shrunk to the keyframes'
+# scale, 1.98 / 2.40 mm with this margin (2.22 / 2.99 unshrunk)
+SHRINK_MARGIN = 1.25
+
+
+def _median_depth(pose: Pose, points: np.ndarray) -> float:
+    """Median depth of the points seen from `pose` (0 without any)."""
+    return float(np.median(pose.transform(points)[:, 2])) if len(points) else 0.0
+
+
+class GuidedSearch:
+    """Search boxes and guided matching while tracking (a mixin of Tracker)."""
+
+    def _model_box(self, pred: Pose, shape) -> tuple[int, int, int, int, float] | None:
+        """Pixel box (x0, y0, x1, y1) around the model's points as the predicted pose sees
+        them, with a margin: nothing outside it can match; and the factor to shrink it by
+        before detection (`shrink_above`; 1: none). None when it would cover most of the
+        frame anyway (or too few points are predicted in front), so the whole frame is
+        searched."""
+        if self.settings.detect_margin_px < 0 or self._model_X is None:
+            return None
+        X = self._model_X
+        front = pred.transform(X)[:, 2] > 1e-3
+        if front.sum() < self.settings.min_inliers:
+            return None
+        uv = self.camera.project(X[front], pred)
+        if not np.isfinite(uv).all():  # points far off-axis: the distortion has no image
+            return None  # (what the NaN box came to before, without numpy's warning)
+        h, w = shape[:2]
+        m = self.settings.detect_margin_px
+        lo, hi = np.percentile(uv, [1, 99], axis=0)  # one partition for both
+        x0, y0 = np.floor(lo - m).astype(int)
+        x1, y1 = np.ceil(hi + m).astype(int)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+        if x1 - x0 < 32 or y1 - y0 < 32 or (x1 - x0) * (y1 - y0) > 0.7 * w * h:
+            return None
+        shrink = 1.0
+        if len(self._kf_depth):
+            kf = self.model.nearest_keyframes(pred, 1)[0]  # its points, then and now
+            depth = _median_depth(pred, self._kf_points[kf])
+            larger = self._focal_ratio * self._kf_depth[kf] / depth if depth > 0 else 1.0
+            shrink = (
+                round(larger / SHRINK_MARGIN, 2) if larger >= self.settings.shrink_above else 1.0
+            )
+        return int(x0), int(y0), int(x1), int(y1), shrink
+
+    def _guided(self, kps, desc, pred: Pose) -> FrameRecord:
+        """Tracking: match near the predicted projections of the nearby keyframes' points.
+        When under half of the matches agree (the prediction was off: stills taken apart,
+        a sudden turn), the matches near the prediction miss many of the frame's points
+        and hold wrong ones: match again around the pose just found (and its nearest
+        keyframes) within a quarter of the radius, and solve again from it."""
+        radius = self.settings.guided_radius_px * (1 + min(self.lost_run, 3))
+        first = self._guided_solve(kps, desc, pred, radius)
+        if first is None:
+            return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_MATCHES)
+        est, uv, X, kf, land = first
+        if est.success and est.inliers.sum() < 0.5 * len(uv):
+            again = self._guided_solve(kps, desc, est.pose, radius / 4)
+            if again is not None and again[0].success:
+                if again[0].inliers.sum() > est.inliers.sum():
+                    est, uv, X, kf, land = again
+                    radius /= 4
+        res = self._gate(est, len(uv), "detect", True, land, (X, uv), radius_px=radius)
+        return self._accept(res, est, uv, X, kf, land)
+
+    def _guided_solve(self, kps, desc, pred: Pose, radius: float):
+        """Guided matches within `radius` of where `pred` projects the nearby keyframes'
+        points, and the pose from them (None: too few matches)."""
+        cands = list(self.model.nearest_keyframes(pred, self.settings.local_keyframes))
+        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        Xc = pred.transform(X_all)
+        front = Xc[:, 2] > 1e-3
+        uvp = self.camera.project(X_all[front], pred)
+        qi, ci = guided_match(
+            kps, desc, uvp, d_all[front], pid_all[front], radius, self.settings.ratio
+        )
+        ci = np.flatnonzero(front)[ci]
+        if len(qi) < self.settings.min_track_inliers:
+            return None
+        uv, X = kps[qi].astype(np.float64), X_all[ci]
+        kf = int(np.argmax(np.bincount(kf_of[ci], minlength=len(self.model.keyframes))))
+        est = solve_pose(
+            X,
+            uv,
+            self.camera,
+            reference_pose=pred,
+            method=self.settings.method,
+            ransac=self.settings.ransac,
+            refine=self.settings.refine,
+        )
+        return est, uv, X, kf, self.on_landmark[pid_all[ci]]
+
+    def _candidates(self, cands):
+        parts = []
+        for k in cands:
+            if k not in self._kf_cache:
+                kp, d, pid = self.model.keyframes[k].linked()
+                self._kf_cache[k] = (
+                    self.model.points[pid],
+                    d,
+                    np.full(len(pid), k, np.int32),
+                    pid.astype(np.int64),
+                )
+            parts.append(self._kf_cache[k])
+        return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))

@@ -1,0 +1,67 @@
+"""`mirage track`'s settings: the tracker's own, and the solver's option objects it passes on."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from ..solver import RansacOptions, RefineOptions
+
+
+@dataclass
+class TrackSettings:
+    method: str = "mirage-s"
+    redetect_every: int = 5  # frames between full detections while flow holds
+    detect_ahead: bool = True  # the next regular detection's features are detected on
+    # the second core while the frames before it are flowed (False: in its own frame)
+    min_inliers: int = 15  # fewer consistent points without a prediction: lost
+    min_track_inliers: int = 6  # while tracking (a prediction to match around and start
+    # Mirage-S from) the pose's uncertainty decides, so a few well-spread points suffice
+    max_false_alarms: float = 1e-3  # the inliers must rule out chance: at most this many
+    # of RANSAC's hypotheses would gather as much support from wrong matches (evidence.py)
+    min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
+    max_ok_rmse_px: float = 2.0  # an ok frame's largest reprojection RMS (--max-rmse)
+    # RANSAC's inlier threshold and seed: 3 px, seed 0
+    ransac: RansacOptions = field(default_factory=lambda: RansacOptions(threshold_px=3.0))
+    # the fit drops points beyond max(reject_px, 5 sigma); Mirage-S's Huber floor: residuals
+    # beyond max(huber_px, 2.5 sigma) weigh less (a model point or keypoint that is off by a
+    # pixel pulls the pose less)
+    refine: RefineOptions = field(
+        default_factory=lambda: RefineOptions(reject_px=2.0, huber_px=0.5)
+    )
+    ratio: float = 0.8
+    flow: bool = True
+    min_flow_points: int = 30
+    flow_fb_px: float = 0.7  # forward-backward consistency of Lucas-Kanade
+    flow_window_px: int = 7  # Lucas-Kanade window: small, so it stays on one surface
+    flow_levels: int = 1  # pyramid levels above the image: each point starts where the
+    # predicted pose puts it (forward) or at its anchor (backward), so one suffices
+    flow_keep: float = 0.5  # fewer of the detected points still followed: detect afresh
+    flow_max_dev_sigma: float = 4.0  # flowed pose this many sigmas off the prediction: detect
+    flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
+    flow_gain_tol: float = 0.05  # the exposure changed more since the anchor: flow again
+    # in the frame scaled to the anchor's brightness (Lucas-Kanade assumes it constant)
+    local_keyframes: int = 4  # keyframes near the previous pose to match against
+    global_keyframes: int = 3  # keyframes proposed by recognition when lost
+    relocalise_every: int = 3  # while lost: the whole frame every N frames, a half-size
+    # probe between (1: the whole frame every time)
+    long_lost: int = 12  # lost longer than this (a look-away, not a dropout): the whole
+    # frame every 2N frames, the probe every other frame between
+    max_jump_m: float = 0.5  # a pose this far from the previous ok pose (per frame)...
+    max_jump_deg: float = 30.0  # ...or turned this much is distrusted (needs detection)
+    guided_radius_px: float = 40.0  # while tracking: match only near the predicted pixel
+    detect_margin_px: int = 32  # while tracking: detect only in the predicted box of the
+    # model's points plus this margin (-1: always the whole frame)
+    upsample_below_px: int = 320  # a smaller detection box (longer side, px; 0: never)...
+    upsample_to_px: int = 480  # ...is upsampled to this size before detection
+    shrink_above: float = 1.5  # the landmark looks this many times larger than from its
+    # nearest keyframe (a sharper camera than the model's, or nearer): the detection box
+    # is shrunk by that factor / SHRINK_MARGIN first (the keyframes hold no finer
+    # features; SIFT's time goes with the pixels)
+    second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
+    # first's inliers makes the frame ambiguous (lost)
+    distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are
+    distinct_deg: float = 5.0  # different hypotheses
+    model_error_points: float = 300.0  # model/keypoint errors average like this many points
+    max_sigma_pos_m: float = 0.10  # a larger 1-sigma uncertainty is `uncertain`, not ok
+    max_sigma_rot_deg: float = 1.5
+    max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance
