@@ -249,8 +249,13 @@ def main():
         f"\ndecode-only: {np.median(decode):.0f} frames/s (median of {len(decode)}); "
         "fps columns exclude decoding (frames held in memory)"
     )
-    if args.no_command:
-        return
+    if not args.no_command:
+        command_tables(args, rows, model, decode)
+
+
+def command_tables(args, rows, model, decode) -> None:
+    """`mirage track` end to end (and, with --against, interleaved with another checkout's):
+    frames/s by its summary against the decode-only ceiling."""
     loop = next((r["fps"] for r in rows if r["pipeline"] == "mirage-s"), float("nan"))
     checkouts = [("this checkout", ROOT)]
     if args.against is not None:

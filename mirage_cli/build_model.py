@@ -22,7 +22,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
@@ -194,10 +193,6 @@ def _check_size(img: np.ndarray, camera: Camera, name: str) -> None:
             f"{name} is {w}x{h} but the camera file is for {camera.width}x{camera.height}; "
             "use the camera calibrated for these images (or resize them)"
         )
-
-
-def _gray(img: np.ndarray) -> np.ndarray:
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
 
 
 def view_direction(pose: Pose) -> tuple[float, float]:

@@ -226,7 +226,7 @@ class Camera:
         try:
             if text.lstrip().startswith("%YAML"):
                 return cls._load_opencv(p)
-            return cls._load_plain(p, text)
+            return _load_camera_info(p, text)
         except InputError as e:
             msg = str(e)
             raise InputError(msg if str(p) in msg else f"camera file {p}: {msg}") from None
@@ -269,76 +269,76 @@ class Camera:
         finally:
             fs.release()
 
-    @classmethod
-    def _load_plain(cls, p: Path, text: str) -> Camera:
-        """ROS camera_info: the calibration YAML (image_width, camera_matrix: {rows, cols,
-        data}, distortion_coefficients, distortion_model) or `topic echo` output of
-        sensor_msgs/CameraInfo (width, height, K/k and D/d as flat lists, then `---`)."""
-        try:
-            docs = [d for d in yaml.safe_load_all(text) if d is not None]
-        except yaml.YAMLError as e:
-            raise InputError(
-                f"camera file {p} is not valid YAML: {str(e).strip().splitlines()[0]}"
-            ) from None
-        if not docs or not isinstance(docs[0], dict):
-            raise InputError(f"camera file {p} does not hold a camera (expected a mapping)")
-        d = docs[0]  # `topic echo` may print several messages; they describe one camera
 
-        def get(*keys):
-            key = next((k for k in keys if k in d), None)
-            return key, (d[key] if key is not None else None)
+def _load_camera_info(p: Path, text: str) -> Camera:
+    """ROS camera_info: the calibration YAML (image_width, camera_matrix: {rows, cols,
+    data}, distortion_coefficients, distortion_model) or `topic echo` output of
+    sensor_msgs/CameraInfo (width, height, K/k and D/d as flat lists, then `---`)."""
+    try:
+        docs = [d for d in yaml.safe_load_all(text) if d is not None]
+    except yaml.YAMLError as e:
+        raise InputError(
+            f"camera file {p} is not valid YAML: {str(e).strip().splitlines()[0]}"
+        ) from None
+    if not docs or not isinstance(docs[0], dict):
+        raise InputError(f"camera file {p} does not hold a camera (expected a mapping)")
+    d = docs[0]  # `topic echo` may print several messages; they describe one camera
 
-        def matrix(keys, size=None):
-            key, v = get(*keys)
-            if key is None:
-                return None, None
-            data = v
-            if isinstance(v, dict):
-                data = v.get("data")
-                if data is None:
-                    raise InputError(f"camera file {p}: '{key}' has no 'data'")
-            try:
-                a = np.asarray(data, dtype=float)
-            except (TypeError, ValueError):
-                raise InputError(f"camera file {p}: '{key}' is not a list of numbers") from None
-            if a.ndim > 2 or (a.ndim == 2 and a.shape[0] * a.shape[1] != a.size):
-                raise InputError(f"camera file {p}: '{key}' is not a matrix of numbers")
-            if isinstance(v, dict) and "rows" in v and "cols" in v:
-                try:
-                    rows, cols = int(v["rows"]), int(v["cols"])
-                except (TypeError, ValueError):
-                    raise InputError(f"camera file {p}: '{key}' rows/cols not integers") from None
-                if rows * cols != a.size:
-                    raise InputError(
-                        f"camera file {p}: '{key}' says {rows}x{cols} but has {a.size} numbers"
-                    )
-            if size is not None and a.size != size:
-                raise InputError(f"camera file {p}: '{key}' must have {size} numbers, has {a.size}")
-            return key, a.ravel()
+    def get(*keys):
+        key = next((k for k in keys if k in d), None)
+        return key, (d[key] if key is not None else None)
 
-        key, K = matrix(("camera_matrix", "K", "k"), 9)
+    def matrix(keys, size=None):
+        key, v = get(*keys)
         if key is None:
-            raise InputError(f"camera file {p}: 'camera_matrix' (or K / k) missing")
-        _, dist = matrix(("distortion_coefficients", "D", "d"))
+            return None, None
+        data = v
+        if isinstance(v, dict):
+            data = v.get("data")
+            if data is None:
+                raise InputError(f"camera file {p}: '{key}' has no 'data'")
         try:
-            wkey, w = get("image_width", "width")
-            hkey, h = get("image_height", "height")
-            w, h = int(w), int(h)
+            a = np.asarray(data, dtype=float)
         except (TypeError, ValueError):
-            raise InputError(
-                f"camera file {p}: 'image_width'/'image_height' (or width/height) missing "
-                "or not integers"
-            ) from None
-        if w == 0 and h == 0:
-            raise InputError(
-                f"camera file {p}: image size is 0x0 (an uncalibrated camera_info message?)"
-            )
-        rms = d.get("rms_px")
-        if rms is not None and not isinstance(rms, int | float):
-            raise InputError(f"camera file {p}: 'rms_px' must be a number")
-        model = _lens_model(p, d.get("distortion_model"))
-        K = K.reshape(3, 3)
-        return cls(K, np.zeros(0) if dist is None else dist, w, h, rms, {}, model)
+            raise InputError(f"camera file {p}: '{key}' is not a list of numbers") from None
+        if a.ndim > 2 or (a.ndim == 2 and a.shape[0] * a.shape[1] != a.size):
+            raise InputError(f"camera file {p}: '{key}' is not a matrix of numbers")
+        if isinstance(v, dict) and "rows" in v and "cols" in v:
+            try:
+                rows, cols = int(v["rows"]), int(v["cols"])
+            except (TypeError, ValueError):
+                raise InputError(f"camera file {p}: '{key}' rows/cols not integers") from None
+            if rows * cols != a.size:
+                raise InputError(
+                    f"camera file {p}: '{key}' says {rows}x{cols} but has {a.size} numbers"
+                )
+        if size is not None and a.size != size:
+            raise InputError(f"camera file {p}: '{key}' must have {size} numbers, has {a.size}")
+        return key, a.ravel()
+
+    key, K = matrix(("camera_matrix", "K", "k"), 9)
+    if key is None:
+        raise InputError(f"camera file {p}: 'camera_matrix' (or K / k) missing")
+    _, dist = matrix(("distortion_coefficients", "D", "d"))
+    try:
+        wkey, w = get("image_width", "width")
+        hkey, h = get("image_height", "height")
+        w, h = int(w), int(h)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"camera file {p}: 'image_width'/'image_height' (or width/height) missing "
+            "or not integers"
+        ) from None
+    if w == 0 and h == 0:
+        raise InputError(
+            f"camera file {p}: image size is 0x0 (an uncalibrated camera_info message?)"
+        )
+    rms = d.get("rms_px")
+    if rms is not None and not isinstance(rms, int | float):
+        raise InputError(f"camera file {p}: 'rms_px' must be a number")
+    model = _lens_model(p, d.get("distortion_model"))
+    K = K.reshape(3, 3)
+    return Camera(K, np.zeros(0) if dist is None else dist, w, h, rms, {}, model)
 
 
 def _garbled(p: Path, e: Exception) -> str:

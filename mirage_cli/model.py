@@ -55,8 +55,75 @@ def make_thumbnail(gray: np.ndarray, width: int = THUMB_WIDTH) -> np.ndarray:
     return cv2.resize(gray, (width, h), interpolation=cv2.INTER_AREA)
 
 
+class KeyframeRecognition:
+    """Global recognition of a model's keyframes from a frame's descriptors (a part of
+    `LandmarkModel`: it reads `keyframes` and `detector` and keeps the index in `_index`)."""
+
+    def _build_index(self):
+        """One matcher over all keyframes' linked descriptors, with the owner of each row."""
+        descs, owner, pids = [], [], []
+        for i, kf in enumerate(self.keyframes):
+            _, d, p = kf.linked()
+            descs.append(d)
+            owner.append(np.full(len(d), i, np.int32))
+            pids.append(p)
+        if not descs or sum(len(d) for d in descs) == 0:
+            self._index = (None, np.zeros(0, np.int32), np.zeros(0, np.int32))
+            return self._index
+        alld = np.ascontiguousarray(np.concatenate(descs))
+        if self.detector.spec.norm == cv2.NORM_HAMMING:
+            matcher = make_matcher(self.detector)
+        else:
+            matcher = cv2.FlannBasedMatcher(
+                {"algorithm": 1, "trees": 4}, {"checks": 32}
+            )  # KD-tree: 20-50x faster than brute force over ~20k descriptors
+        matcher.add([alld])
+        matcher.train()
+        self._index = (matcher, np.concatenate(owner), np.concatenate(pids))
+        return self._index
+
+    def prepare_recognition(self) -> None:
+        """Build the recognition index now (FLANN over every linked descriptor: 0.1 s for
+        the sample), not in the first frame that needs it."""
+        if self._index is None:
+            self._build_index()
+
+    def recognize(self, descriptors: np.ndarray, top_k: int = 3) -> list[tuple[int, float]]:
+        """Keyframes that most likely see the same side as a frame's descriptors.
+
+        Each query votes for the keyframe of its nearest linked descriptor when it passes
+        the ratio test, or when its two nearest neighbours are the same 3D point (seen by
+        neighbouring keyframes, which would otherwise fail the ratio test). Votes by chance
+        go to each keyframe in proportion to its linked descriptors: the keyframes with more
+        votes than that share explains (by two standard deviations) come first, each group
+        by votes (a keyframe with many
+        points collects many chance votes: on real photographs they outnumbered the true
+        keyframe's; counted by votes alone, dtu_scan37's frame 29 was sent to three
+        keyframes that see none of its points).
+        """
+        if len(descriptors) == 0 or not self.keyframes:
+            return []
+        matcher, owner, pids = self._index if self._index is not None else self._build_index()
+        if matcher is None:
+            return []
+        q = np.ascontiguousarray(descriptors, dtype=self.detector.spec.dtype)
+        k = knn2(q, None, matcher)
+        ok = k[:, 0] >= 0
+        i1 = k[:, 0].astype(np.int64)
+        i2 = k[:, 2].astype(np.int64)
+        same = ok & (i2 >= 0) & (pids[np.clip(i2, 0, None)] == pids[np.clip(i1, 0, None)])
+        good = ok & ((k[:, 1] < 0.8 * k[:, 3]) | same)
+        votes = np.bincount(owner[i1[good]], minlength=len(self.keyframes)).astype(float)
+        share = np.bincount(owner, minlength=len(self.keyframes)) / max(len(owner), 1)
+        chance = votes.sum() * share
+        beyond = votes > chance + 2.0 * np.sqrt(chance)  # more votes than chance explains
+        order = np.argsort(-votes, kind="stable")
+        order = np.concatenate([order[beyond[order]], order[~beyond[order]]])[:top_k]
+        return [(int(i), float(votes[i])) for i in order if votes[i] > 0]
+
+
 @dataclass
-class LandmarkModel:
+class LandmarkModel(KeyframeRecognition):
     """Keyframes around the landmark and the 3D points (W frame) their features see.
 
     `point_observations` is a dict of equal-length int32 arrays `point`, `keyframe`,
@@ -119,69 +186,6 @@ class LandmarkModel:
             "spacing_deg": spacing,
             "detector": self.detector.name,
         }
-
-    # --- recognition --------------------------------------------------------------------
-    def _build_index(self):
-        """One matcher over all keyframes' linked descriptors, with the owner of each row."""
-        descs, owner, pids = [], [], []
-        for i, kf in enumerate(self.keyframes):
-            _, d, p = kf.linked()
-            descs.append(d)
-            owner.append(np.full(len(d), i, np.int32))
-            pids.append(p)
-        if not descs or sum(len(d) for d in descs) == 0:
-            self._index = (None, np.zeros(0, np.int32), np.zeros(0, np.int32))
-            return self._index
-        alld = np.ascontiguousarray(np.concatenate(descs))
-        if self.detector.spec.norm == cv2.NORM_HAMMING:
-            matcher = make_matcher(self.detector)
-        else:
-            matcher = cv2.FlannBasedMatcher(
-                {"algorithm": 1, "trees": 4}, {"checks": 32}
-            )  # KD-tree: 20-50x faster than brute force over ~20k descriptors
-        matcher.add([alld])
-        matcher.train()
-        self._index = (matcher, np.concatenate(owner), np.concatenate(pids))
-        return self._index
-
-    def prepare_recognition(self) -> None:
-        """Build the recognition index now (FLANN over every linked descriptor: 0.1 s for
-        the sample), not in the first frame that needs it."""
-        if self._index is None:
-            self._build_index()
-
-    def recognize(self, descriptors: np.ndarray, top_k: int = 3) -> list[tuple[int, float]]:
-        """Keyframes that most likely see the same side as a frame's descriptors.
-
-        Each query votes for the keyframe of its nearest linked descriptor when it passes
-        the ratio test, or when its two nearest neighbours are the same 3D point (seen by
-        neighbouring keyframes, which would otherwise fail the ratio test). Votes by chance
-        go to each keyframe in proportion to its linked descriptors: the keyframes with more
-        votes than that share explains (by two standard deviations) come first, each group
-        by votes (a keyframe with many
-        points collects many chance votes: on real photographs they outnumbered the true
-        keyframe's; counted by votes alone, dtu_scan37's frame 29 was sent to three
-        keyframes that see none of its points).
-        """
-        if len(descriptors) == 0 or not self.keyframes:
-            return []
-        matcher, owner, pids = self._index if self._index is not None else self._build_index()
-        if matcher is None:
-            return []
-        q = np.ascontiguousarray(descriptors, dtype=self.detector.spec.dtype)
-        k = knn2(q, None, matcher)
-        ok = k[:, 0] >= 0
-        i1 = k[:, 0].astype(np.int64)
-        i2 = k[:, 2].astype(np.int64)
-        same = ok & (i2 >= 0) & (pids[np.clip(i2, 0, None)] == pids[np.clip(i1, 0, None)])
-        good = ok & ((k[:, 1] < 0.8 * k[:, 3]) | same)
-        votes = np.bincount(owner[i1[good]], minlength=len(self.keyframes)).astype(float)
-        share = np.bincount(owner, minlength=len(self.keyframes)) / max(len(owner), 1)
-        chance = votes.sum() * share
-        beyond = votes > chance + 2.0 * np.sqrt(chance)  # more votes than chance explains
-        order = np.argsort(-votes, kind="stable")
-        order = np.concatenate([order[beyond[order]], order[~beyond[order]]])[:top_k]
-        return [(int(i), float(votes[i])) for i in order if votes[i] > 0]
 
     def nearest_keyframes(self, pose: Pose, k: int = 3) -> list[int]:
         """Keyframes whose viewpoint is closest: direction from the landmark to the camera

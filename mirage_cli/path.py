@@ -194,7 +194,7 @@ class PolylinePath:
         return self.points_m
 
 
-Path_ = CirclePath | PolylinePath
+DesiredPath = CirclePath | PolylinePath
 
 
 def _look_heading(P: np.ndarray, look_at, tangent_deg: np.ndarray) -> np.ndarray:
@@ -212,7 +212,7 @@ def _heading_err(yaw_deg, desired_deg) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 # reading path files
 # --------------------------------------------------------------------------------------
-def load_path(path) -> Path_:
+def load_path(path) -> DesiredPath:
     """A desired path from YAML (circle or polyline) or a waypoint CSV."""
     p = require_file(path, "path file")
     if p.suffix.lower() == ".csv":
@@ -229,7 +229,7 @@ SAME_PLACE_M = 1e-6  # m: passes of a path this close are one place (laps over e
 MAX_M = 1.0e7  # m: any coordinate or radius beyond is a unit mix-up (the Earth is 6.4e6 m)
 
 
-def path_from_dict(data: dict, where: str = "path") -> Path_:
+def path_from_dict(data: dict, where: str = "path") -> DesiredPath:
     import difflib
 
     for k in data:

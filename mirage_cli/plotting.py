@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     from .calibrate import Calibration
     from .camera import Camera
     from .model import LandmarkModel
-    from .path import Path_
+    from .path import DesiredPath
     from .records import FrameRecord
     from .report import Report
 
@@ -83,7 +83,7 @@ SIGN_NOTES = {
 }
 
 
-def report_figure(rep: Report, path: Path_) -> Figure:
+def report_figure(rep: Report, path: DesiredPath) -> Figure:
     """Top view (desired path, estimate, truth, lost frames) and errors over time."""
     from .path import CirclePath
     from .report import SIGNED, TRUTH_COLUMNS

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import InputError
-from .path import Path_
+from .path import DesiredPath
 from .records import Status
 
 BASE_COLUMNS = [
@@ -63,7 +63,9 @@ def align_truth(poses: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
     return t.reindex(pk.to_numpy()).reset_index(drop=True)
 
 
-def make_report(poses: pd.DataFrame, path: Path_, truth: pd.DataFrame | None = None) -> Report:
+def make_report(
+    poses: pd.DataFrame, path: DesiredPath, truth: pd.DataFrame | None = None
+) -> Report:
     """Per-frame errors and the summary for a pose table from `read_pose_csv`."""
     ok = (poses["status"] == Status.OK).to_numpy()
     xyz = poses[["x_m", "y_m", "z_m"]].to_numpy(float)
@@ -184,8 +186,3 @@ def _visibility(ok: np.ndarray, visible: pd.Series) -> dict:
         "frames_out_of_view": int(hidden.sum()),
         "ok_out_of_view": int((ok & hidden).sum()),
     }
-
-
-def summary_rows(summary: dict) -> list[tuple[str, dict]]:
-    """(name, stats) for printing a table."""
-    return list(summary["errors"].items())

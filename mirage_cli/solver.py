@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from . import refine as _k
+from . import refine as kernels  # the numba kernels of Mirage-S
 from .camera import Camera
 from .pose import Pose, rodrigues, rotvec
 
@@ -120,14 +120,6 @@ class PoseEstimate:
     def sigma_rot_deg(self) -> float:
         return sigmas(self.covariance)[1]
 
-    @property
-    def center_covariance(self) -> np.ndarray:
-        """3x3 covariance of the camera centre in W (m^2)."""
-        if self.pose is None:
-            return np.full((3, 3), np.nan)
-        R = self.pose.R
-        return R.T @ self.covariance[3:, 3:] @ R
-
 
 def _fail(reason: str, n: int, method: str, iterations: int = 0) -> PoseEstimate:
     return PoseEstimate(
@@ -152,13 +144,13 @@ class _Problem:
         n = self.n
         e, r2, pred, iz = np.empty((n, 2)), np.empty(n), np.empty((n, 2)), np.empty(n)
         R, t = np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64)
-        zmin = _k.residuals(self.X, self.xy, self.fx, self.fy, R, t, e, r2, pred, iz)
+        zmin = kernels.residuals(self.X, self.xy, self.fx, self.fy, R, t, e, r2, pred, iz)
         return e, r2, pred, iz, zmin
 
     def point_r2(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Per-point squared pixel error; inf for points behind the camera (outliers may be)."""
         Xc = self.X @ R.T + t
-        front = Xc[:, 2] > _k.MIN_DEPTH
+        front = Xc[:, 2] > kernels.MIN_DEPTH
         p = Xc[:, :2] / np.where(front, Xc[:, 2], 1.0)[:, None]
         e = self.xy - p
         r2 = (e[:, 0] * self.fx) ** 2 + (e[:, 1] * self.fy) ** 2
@@ -168,21 +160,23 @@ class _Problem:
     def normal_equations(self, pred, iz, wt, e):
         """H = J^T W J and g = J^T W e (pixel units) at the predicted points `pred`."""
         H, g = np.empty((6, 6)), np.empty(6)
-        _k.normal_equations(self.fx, self.fy, pred, iz, np.ascontiguousarray(wt, float), e, H, g)
+        kernels.normal_equations(
+            self.fx, self.fy, pred, iz, np.ascontiguousarray(wt, float), e, H, g
+        )
         return H, g
 
 
 _REFINE_FAILURES = {
-    _k.BEHIND_AT_START: "points behind the camera at the start pose",
-    _k.SINGULAR: "singular system (degenerate point configuration)",
-    _k.DIVERGED: "diverged (non-finite pose)",
+    kernels.BEHIND_AT_START: "points behind the camera at the start pose",
+    kernels.SINGULAR: "singular system (degenerate point configuration)",
+    kernels.DIVERGED: "diverged (non-finite pose)",
 }
 
 
 def _refine(prob: _Problem, pose: Pose, opts: RefineOptions, reject_px: float):
     """Gauss-Newton / IRLS on the left perturbation (compiled, see `refine`).  Returns a dict
     or a failure reason."""
-    status, R, t, r2, wt, H, iterations = _k.refine(
+    status, R, t, r2, wt, H, iterations = kernels.refine(
         prob.X,
         prob.xy,
         prob.fx,
@@ -195,9 +189,9 @@ def _refine(prob: _Problem, pose: Pose, opts: RefineOptions, reject_px: float):
         float(reject_px),
         float(opts.tol),
     )
-    if status == _k.NOT_CONVERGED:
+    if status == kernels.NOT_CONVERGED:
         return f"did not converge in {opts.max_iterations} iterations"
-    if status != _k.OK:
+    if status != kernels.OK:
         return _REFINE_FAILURES[status]
     return {"R": R, "t": t, "r2": r2, "wt": wt, "H": H, "iterations": int(iterations)}
 
@@ -214,7 +208,7 @@ def _validate(points_3d, points_2d):
     if len(X) < 3:
         return f"need at least 3 correspondences, got {len(X)}"
     try:
-        finite, ev = _k.inspect_points(X, u)  # scatter eigenvalues, ascending
+        finite, ev = kernels.inspect_points(X, u)  # scatter eigenvalues, ascending
     except np.linalg.LinAlgError:  # overflow to inf in the scatter matrix
         finite, ev = False, None
     if not finite:
@@ -228,7 +222,7 @@ def _normalise(camera: Camera, u: np.ndarray):
     """Undistorted normalised coordinates; a direct K^-1 when the lens has no distortion."""
     K = camera.K
     if not camera.dist.any() and K[1, 0] == 0.0:
-        return _k.normalise_pinhole(u, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1])
+        return kernels.normalise_pinhole(u, K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1])
     try:
         return camera.undistort_points(u)
     except cv2.error:
@@ -247,8 +241,8 @@ def _finish(
     """Checks at the solution, RMSE and covariance (J^T W J)^-1 sigma^2."""
     R, t = res["R"], res["t"]
     it = res["iterations"]
-    zmin, n_used, sum_r2, cost = _k.solution_stats(prob.X, R, t, res["wt"], res["r2"])
-    if not zmin > _k.MIN_DEPTH:
+    zmin, n_used, sum_r2, cost = kernels.solution_stats(prob.X, R, t, res["wt"], res["r2"])
+    if not zmin > kernels.MIN_DEPTH:
         return _fail("points behind the camera at the solution", n_all, method, it)
     if n_used < 3:
         return _fail("fewer than 3 inliers", n_all, method, it)
@@ -261,7 +255,7 @@ def _finish(
     else:
         s2 = default_sigma**2
     try:
-        ok, cov = _k.covariance(res["H"], s2)
+        ok, cov = kernels.covariance(res["H"], s2)
     except np.linalg.LinAlgError:  # non-finite normal equations
         ok, cov = False, None
     if not ok:
@@ -356,7 +350,7 @@ def _pixel_terms(X: np.ndarray, xy: np.ndarray, pose: Pose, camera: Camera, hube
     J, r, w, H = np.empty((n, 2, 6)), np.empty((n, 2)), np.empty(n), np.empty((6, 6))
     huber = float(huber_px) if huber_px is not None else 0.0
     R, t = np.ascontiguousarray(pose.R, float), np.asarray(pose.t, float)
-    if not _k.sandwich_terms(X, np.ascontiguousarray(xy, float), camera.fx, camera.fy, R, t,
+    if not kernels.sandwich_terms(X, np.ascontiguousarray(xy, float), camera.fx, camera.fy, R, t,
                              huber, huber_px is not None, J, r, w, H):  # fmt: skip
         return None
     return J, r, w, H
@@ -403,7 +397,7 @@ def sandwich_covariance(
     except np.linalg.LinAlgError:
         return nan
     M = np.empty((6, 6))
-    _k.sandwich_meat(J, r, w, Hi, M)
+    kernels.sandwich_meat(J, r, w, Hi, M)
     cov = Hi @ M @ Hi
     return 0.5 * (cov + cov.T)
 
@@ -450,6 +444,74 @@ def _count(points) -> int:
         return 0
 
 
+def _option_error(method: str, ransac: RansacOptions | None, opts: RefineOptions) -> str | None:
+    """Why these options cannot be solved with (None: they can)."""
+    if method not in METHODS:
+        return f"unknown method '{method}' (choose from {', '.join(METHODS)})"
+    if opts.robust not in ("huber", "none"):
+        return f"unknown robust loss '{opts.robust}' (huber or none)"
+    if not opts.reference_sigma_deg > 0.0:
+        return f"reference_sigma_deg must be > 0, got {opts.reference_sigma_deg}"
+    if ransac is not None and ransac.minimal_solver not in _MINIMAL_SOLVERS:
+        return (
+            f"unknown minimal solver '{ransac.minimal_solver}' "
+            f"(choose from {', '.join(_MINIMAL_SOLVERS)})"
+        )
+    return None
+
+
+def _start_poses(Xi, ui, camera: Camera, reference_pose, ransac_pose) -> list[Pose]:
+    """Where Mirage-S starts: the reference and RANSAC's pose; without a reference, the
+    first of SQPnP, EPnP and AP3P that gives one (on the points RANSAC kept)."""
+    starts = []
+    if reference_pose is not None:
+        starts.append(reference_pose)
+    if ransac_pose is not None:
+        starts.append(ransac_pose)
+    if reference_pose is None:
+        for m in ("sqpnp", "epnp", "ap3p"):
+            p0 = _cv_solve(m, Xi, ui, camera, None)
+            if isinstance(p0, Pose):
+                starts.append(p0)
+                break
+    return starts
+
+
+def _refine_starts(
+    prob, sub, starts, mask, opts, reject_px, reclassify_px, stop_at_first,
+    pixel_sigma, default_pixel_sigma,
+):  # fmt: skip
+    """Mirage-S from each start pose in turn: the best estimate (least RMSE), why the last
+    start failed, and the points used. With `reclassify_px` (RANSAC ran) every point is
+    re-classified by its reprojection at the refined pose and the fit redone if that
+    changed; `stop_at_first`: the reference start succeeded, its basin is the one wanted."""
+    n = len(mask)
+    reason, best = "no start pose", None
+    for start in starts:
+        m = mask
+        res = _refine(sub(m), start, opts, reject_px)
+        if isinstance(res, str):
+            reason = res
+            continue
+        if reclassify_px is not None:
+            m2 = prob.point_r2(res["R"], res["t"]) <= reclassify_px**2
+            if m2.sum() >= 3 and not np.array_equal(m2, m):
+                res2 = _refine(sub(m2), Pose(res["R"], res["t"]), opts, reject_px)
+                if not isinstance(res2, str):
+                    res2["iterations"] += res["iterations"]
+                    res, m = res2, m2
+        mask = m  # as before: a re-classified mask carries over to the next start
+        est = _from_refine(prob, sub(m), res, m, n, pixel_sigma, default_pixel_sigma)
+        if not est.success:
+            reason = est.reason
+            continue
+        if best is None or est.rmse_px < best.rmse_px:
+            best = est
+        if stop_at_first and best is est:
+            break
+    return best, reason, mask
+
+
 def _solve(
     points_3d,
     points_2d,
@@ -461,19 +523,9 @@ def _solve(
 ) -> PoseEstimate:
     """The body of `solve_pose` (see there for the arguments)."""
     method = str(method).lower()
-    if method not in METHODS:
-        return _fail(f"unknown method '{method}' (choose from {', '.join(METHODS)})", 0, method)
-    if opts.robust not in ("huber", "none"):
-        return _fail(f"unknown robust loss '{opts.robust}' (huber or none)", 0, method)
-    if not opts.reference_sigma_deg > 0.0:
-        return _fail(f"reference_sigma_deg must be > 0, got {opts.reference_sigma_deg}", 0, method)
-    if ransac is not None and ransac.minimal_solver not in _MINIMAL_SOLVERS:
-        return _fail(
-            f"unknown minimal solver '{ransac.minimal_solver}' "
-            f"(choose from {', '.join(_MINIMAL_SOLVERS)})",
-            0,
-            method,
-        )
+    wrong = _option_error(method, ransac, opts)
+    if wrong is not None:
+        return _fail(wrong, 0, method)
     v = _validate(points_3d, points_2d)
     if isinstance(v, str):
         return _fail(v, _count(points_3d), method)
@@ -515,62 +567,19 @@ def _solve(
             prob, p0, mask, method, thr, pixel_sigma, default_pixel_sigma, ransac is not None
         )
 
-    starts = []
-    if reference_pose is not None:
-        starts.append(reference_pose)
-    if ransac_pose is not None:
-        starts.append(ransac_pose)
-    if reference_pose is None:
-        Xi, ui = X[mask], u[mask]
-        for m in ("sqpnp", "epnp", "ap3p"):
-            p0 = _cv_solve(m, Xi, ui, camera, None)
-            if isinstance(p0, Pose):
-                starts.append(p0)
-                break
-        if not starts:
-            return _fail(
-                "no reference pose and no initial solution from SQPnP/EPnP/AP3P", n, method
-            )
+    starts = _start_poses(X[mask], u[mask], camera, reference_pose, ransac_pose)
+    if not starts:
+        return _fail("no reference pose and no initial solution from SQPnP/EPnP/AP3P", n, method)
 
-    reason = "no start pose"
-    best = None
-    for start in starts:
-        res = _refine(sub(mask), start, opts, reject_px)
-        if isinstance(res, str):
-            reason = res
-            continue
-        if ransac is not None:
-            # re-classify every point by its reprojection at the refined pose; refit if changed
-            r2all = prob.point_r2(res["R"], res["t"])
-            m2 = r2all <= thr**2
-            if m2.sum() >= 3 and not np.array_equal(m2, mask):
-                p1 = Pose(res["R"], res["t"])
-                res2 = _refine(sub(m2), p1, opts, reject_px)
-                if not isinstance(res2, str):
-                    res2["iterations"] += res["iterations"]
-                    res, mask = res2, m2
-        est = _from_refine(prob, sub(mask), res, mask, n, pixel_sigma, default_pixel_sigma)
-        if not est.success:
-            reason = est.reason
-            continue
-        if best is None or est.rmse_px < best.rmse_px:
-            best = est
-        if reference_pose is not None and best is est:
-            break  # the reference start succeeded: its basin is the one we want
+    best, reason, mask = _refine_starts(
+        prob, sub, starts, mask, opts, reject_px, thr if ransac is not None else None,
+        reference_pose is not None, pixel_sigma, default_pixel_sigma,
+    )  # fmt: skip
     if reference_pose is not None and (planar or (n <= _FEW_POINTS and mask.sum() >= 4)):
         # the planar flip or a P3P-like second root: weigh the other minima too (even when
         # the reference start failed)
         best = _resolve_ambiguity(
-            best,
-            X,
-            u,
-            xy,
-            mask,
-            camera,
-            reference_pose,
-            opts,
-            reject_px,
-            planar,
+            best, X, u, xy, mask, camera, reference_pose, opts, reject_px, planar
         )
     if best is None:
         return _fail(reason, n, method)
@@ -710,7 +719,7 @@ def _score_fixed(prob, pose, mask, method, thr, pixel_sigma, default_sigma, rans
     if not (np.isfinite(pose.R).all() and np.isfinite(pose.t).all()):
         return _fail(f"{method} gave a non-finite pose", prob.n, method)
     e, r2, pred, iz, zmin = prob.residuals(pose.R, pose.t)
-    if zmin <= _k.MIN_DEPTH:  # (residuals of such points are not computed)
+    if zmin <= kernels.MIN_DEPTH:  # (residuals of such points are not computed)
         return _fail(f"{method}: points behind the camera at its solution", prob.n, method)
     inl = (r2 <= thr**2) & mask if ransac else mask.copy()
     wt = inl.astype(float)

@@ -16,7 +16,7 @@ import numpy as np
 from .boards import Board
 from .camera import Camera
 from .pose import Pose, look_at, matrix_from_rpy, rodrigues
-from .render import Cylinder, Rect, Renderer, Scene, random_texture, stable_rng
+from .render import Cylinder, Rect, Scene, random_texture, stable_rng
 
 LIGHT = np.array([0.45, 0.3, 0.84]) / np.linalg.norm([0.45, 0.3, 0.84])
 LANDMARK_TARGET = np.array([0.0, 0.0, 0.28])  # where the keyframe and orbit cameras look
@@ -455,12 +455,6 @@ class OrbitPath:
             "direction": "ccw",
             "look_at_m": [float(v) for v in LANDMARK_TARGET],
         }
-
-
-def render_images(renderer: Renderer, poses, noise: float, seed: int, name: str):
-    """Yield one noisy rendering per pose; noise is seeded per image for reproducibility."""
-    for i, pose in enumerate(poses):
-        yield renderer.render(pose, noise, stable_rng(seed, f"{name}-noise-{i}"))
 
 
 def encode_jpeg(img: np.ndarray, quality: int = 95) -> bytes:

@@ -2,11 +2,12 @@
 """Mutation testing of one core module with mutmut (the [test] extra installs it).
 
     python tools/mutate.py fileio tests/test_fileio.py
-    python tools/mutate.py smooth tests/test_smooth.py --only "mirage_cli/smooth.py"
+    python tools/mutate.py tracking.smooth tests/test_smooth.py
     python tools/mutate.py solver tests/test_solver.py --max-children 2
 
 mutmut copies the package into a scratch folder (build/mutation/MODULE/, not tracked),
-mutates only mirage_cli/MODULE.py there, and for each mutant runs only the given test
+mutates only mirage_cli/MODULE.py there (a dotted MODULE names a subpackage's module:
+tracking.smooth is mirage_cli/tracking/smooth.py), and for each mutant runs only the given test
 files' tests that call the mutated function (mutmut's own per-function selection). It
 prints killed / total and the survivors, which are then either killed by a new test or
 listed in docs/mutation.md as equivalent, with the reason. `--names 'PATTERN'` (mutmut's
@@ -36,7 +37,7 @@ def _config(module: str, tests: list[str]) -> str:
     quoted = ", ".join(f'"{t}"' for t in tests)
     return f"""[tool.mutmut]
 source_paths = ["mirage_cli"]
-only_mutate = ["*mirage_cli/{module}.py"]
+only_mutate = ["*mirage_cli/{module.replace(".", "/")}.py"]
 pytest_add_cli_args_test_selection = [{quoted}]
 pytest_add_cli_args = ["-p", "no:cacheprovider", "-x", "-q"]
 also_copy = ["sample_data"]
@@ -53,14 +54,14 @@ def _chosen(name: str, patterns: list[str]) -> bool:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("module", help="a module of mirage_cli, e.g. solver, smooth, fileio")
+    ap.add_argument("module", help="a module of mirage_cli, e.g. solver, tracking.smooth")
     ap.add_argument("tests", nargs="+", help="the test files that test it")
     ap.add_argument("--max-children", type=int, default=2)
     ap.add_argument("--names", nargs="*", default=[], help="mutmut mutant names / globs")
     ap.add_argument("--fresh", action="store_true", help="forget earlier results")
     a = ap.parse_args()
 
-    src = ROOT / "mirage_cli" / f"{a.module}.py"
+    src = ROOT / "mirage_cli" / f"{a.module.replace('.', '/')}.py"
     if not src.is_file():
         ap.error(f"{src} not found")
     work = ROOT / "build" / "mutation" / a.module

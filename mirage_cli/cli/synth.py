@@ -233,6 +233,37 @@ def synth_cmd(
         e.param_hint = "'--board'"
         raise
     hs = float_list(heights, "--heights")
+    cam = _camera(camera_path, width, height)
+    if camera_path:
+        refuse_overwrite({"OUTDIR": Path(outdir) / "camera_truth.yaml"}, {"--camera": camera_path})
+    out = ensure_dir(outdir)
+    t0 = time.perf_counter()
+    cam.save(out / "camera_truth.yaml")
+
+    if "calibration" in parts:
+        _calibration(out / "calibration", cam, cols, rows, square, calib_views, seed, noise,
+                     jpeg_quality, jobs)  # fmt: skip
+    if "keyframes" in parts or "orbit" in parts:
+        scene = synth.landmark_scene(seed, floor_tile_m=floor_tiles, lookalike=lookalike)
+        if ground_board:
+            scene = _with_ground_board(scene, out)
+        renderer = Renderer(scene, cam, aa=aa)
+        if "keyframes" in parts:
+            _keyframes(out / "keyframes", renderer, keyframe_step, radius, hs, seed, noise,
+                       jpeg_quality, jobs)  # fmt: skip
+        if "orbit" in parts:
+            occluders = [synth.pole(seed)] if pole else []
+            if occluders:
+                renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam, aa=aa)
+            path = synth.OrbitPath(
+                duration_s=duration, radius_m=video_radius, turns=turns, look_away_s=away_s
+            )
+            _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders)
+    ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
+
+
+def _camera(camera_path, width, height) -> Camera:
+    """The camera to render with: the file's or the default webcam, scaled to the size."""
     cam = Camera.load(camera_path) if camera_path else synth.default_camera()
     if width or height:
         w = width or round(cam.width * height / cam.height)
@@ -243,56 +274,16 @@ def synth_cmd(
                 param_hint="'--width' / '--height'",
             )
         cam = cam.scaled(w, h)
-    if camera_path:
-        refuse_overwrite({"OUTDIR": Path(outdir) / "camera_truth.yaml"}, {"--camera": camera_path})
-    out = ensure_dir(outdir)
-    t0 = time.perf_counter()
-    cam.save(out / "camera_truth.yaml")
+    return cam
 
-    if "calibration" in parts:
-        _calibration(
-            out / "calibration",
-            cam,
-            cols,
-            rows,
-            square,
-            calib_views,
-            seed,
-            noise,
-            jpeg_quality,
-            jobs,
-        )
-    if "keyframes" in parts or "orbit" in parts:
-        scene = synth.landmark_scene(seed, floor_tile_m=floor_tiles, lookalike=lookalike)
-        if ground_board:
-            scene = synth.add_ground_board(scene)
-            with atomic_write(out / "board.yaml") as f:
-                f.write("# The ChArUco board on the ground (mirage synth --ground-board).\n")
-                yaml.safe_dump(
-                    synth.GROUND_BOARD.to_yaml(), f, sort_keys=False, default_flow_style=None
-                )
-        renderer = Renderer(scene, cam, aa=aa)
-        if "keyframes" in parts:
-            _keyframes(
-                out / "keyframes",
-                renderer,
-                keyframe_step,
-                radius,
-                hs,
-                seed,
-                noise,
-                jpeg_quality,
-                jobs,
-            )
-        if "orbit" in parts:
-            occluders = [synth.pole(seed)] if pole else []
-            if occluders:
-                renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam, aa=aa)
-            path = synth.OrbitPath(
-                duration_s=duration, radius_m=video_radius, turns=turns, look_away_s=away_s
-            )
-            _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders)
-    ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
+
+def _with_ground_board(scene, out: Path):
+    """The scene with the ChArUco board on the ground, and OUTDIR/board.yaml describing it."""
+    scene = synth.add_ground_board(scene)
+    with atomic_write(out / "board.yaml") as f:
+        f.write("# The ChArUco board on the ground (mirage synth --ground-board).\n")
+        yaml.safe_dump(synth.GROUND_BOARD.to_yaml(), f, sort_keys=False, default_flow_style=None)
+    return scene
 
 
 def _calibration(folder, cam, cols, rows, square, n, seed, noise, quality, jobs):

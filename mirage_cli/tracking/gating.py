@@ -87,6 +87,17 @@ class PoseGate:
             total, int(inl.sum()), p, RANSAC_HYPOTHESES, self.settings.max_false_alarms
         )
 
+    def _jumped(self, pose) -> bool:
+        """Further from the previous ok pose than the motion allows (the limits are per
+        frame since that pose)."""
+        if self.prev_pose is None:
+            return False
+        frames = 1 + self.lost_run
+        return (
+            pose.distance_to(self.prev_pose) > self.settings.max_jump_m * frames
+            or pose.angle_to(self.prev_pose) > self.settings.max_jump_deg * frames
+        )
+
     def _gate(
         self,
         est: PoseEstimate,
@@ -139,15 +150,7 @@ class PoseGate:
         if est.pose.transform(np.zeros((1, 3)))[0, 2] <= 0:
             res.reason = Reason.BEHIND
             return res  # the landmark behind the camera
-        frames = 1 + self.lost_run  # since the previous ok pose: the limits are per frame
-        if (
-            check_jump
-            and self.prev_pose is not None
-            and (
-                est.pose.distance_to(self.prev_pose) > self.settings.max_jump_m * frames
-                or est.pose.angle_to(self.prev_pose) > self.settings.max_jump_deg * frames
-            )
-        ):
+        if check_jump and self._jumped(est.pose):
             res.reason = Reason.JUMP
             return res
         max_pos = self.settings.max_sigma_pos_m
