@@ -60,7 +60,7 @@ from mirage_cli.runtime import opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
 
 CACHE = ROOT / "benchmarks" / ".cache"
-CACHE_VERSION = 1  # bump when mirage_cli/families.py or the renderer changes what it draws
+CACHE_VERSION = 2  # bump when mirage_cli/families.py or the renderer changes what it draws
 TUNE_SEEDS = range(0, 100)
 REPORT_SEEDS = range(1000, 1030)
 FPS = 30.0
