@@ -115,9 +115,14 @@ def _checkout_state() -> dict:
     folders: tests write only under tmp_path, never here."""
     skip = {".git", "build", ".venv", ".venv-ci", "__pycache__", ".pytest_cache", ".ruff_cache",
             ".hypothesis", "mutants"}  # fmt: skip
+    rendered = ROOT / "benchmarks" / ".cache"  # benchmarks render here, gitignored
     out = {}
     for dirpath, dirnames, filenames in os.walk(ROOT):
-        dirnames[:] = [d for d in dirnames if d not in skip and not d.endswith(".egg-info")]
+        dirnames[:] = [
+            d
+            for d in dirnames
+            if d not in skip and not d.endswith(".egg-info") and Path(dirpath, d) != rendered
+        ]
         for f in filenames:
             st = os.stat(os.path.join(dirpath, f))
             out[os.path.join(dirpath, f)] = (st.st_size, st.st_mtime_ns)

@@ -330,3 +330,77 @@ def test_stress_options_cli(mirage, tmp_path):
     kb = read_pose_csv(b / "keyframes" / "poses.csv")
     assert np.allclose(np.hypot(kb["x_m"], kb["y_m"]), 1.4)
     assert (a / "keyframes/kf_000.jpg").read_bytes() != (b / "keyframes/kf_000.jpg").read_bytes()
+
+
+# --- random scene families ---------------------------------------------------------------
+@pytest.mark.parametrize("family", ["near", "far", "above"])
+def test_random_families_draw_what_they_promise(family):
+    """Over 12 seeds each family keeps its ranges: the far landmark 50-120 px tall 3-5 m
+    away with keyframes 1-1.5 m (a big landmark steps them back), the video from above
+    30-60 deg over keyframes at 0-20 deg; landmarks 0.3-2 m; the same seed, the same scene;
+    the video's distance and height differ from the keyframes'."""
+    from mirage_cli.families import family_scene
+
+    kinds = set()
+    for seed in range(12):
+        fs = family_scene(family, seed)
+        r = fs.recipe
+        assert r == family_scene(family, seed).recipe
+        assert 0.3 <= r["landmark"]["height_m"] <= 2.0
+        kinds.add((r["landmark"]["boxes"], r["landmark"]["drums"], r["floor"]))
+        kf, vid = r["keyframes"], r["video"]
+        assert kf["distance_m"] != vid["distance_m"] and kf["elevation_deg"] != vid["elevation_deg"]
+        target = np.array(fs.path.target)
+        C = np.array([p.center for _, p in fs.keyframes])
+        d = np.linalg.norm(C - fs.path.target, axis=1)
+        elev = np.degrees(np.arcsin((C[:, 2] - target[2]) / d))
+        if family == "far":
+            assert 3.0 <= vid["distance_m"] <= 5.0 and 50 <= r["landmark_px"] <= 120
+            assert 1.0 <= kf["distance_m"] and (
+                kf["distance_m"] <= 1.5 or r["landmark"]["span_m"] > 0.5
+            )
+        if family == "above":
+            assert 30 <= vid["elevation_deg"] <= 60
+            assert (elev > -1).all() and (elev < 21).all()
+            P = fs.path.pose(2.5).center
+            assert np.degrees(np.arctan2(P[2] - target[2], np.hypot(*P[:2]))) > 25
+        if family == "near":
+            assert (
+                0.8 <= vid["distance_m"] <= 2.0
+                or vid["distance_m"] <= 0.55 * r["landmark"]["span_m"] + 0.31
+            )
+        # the keyframes see the landmark: its samples project into every keyframe
+        S = fs.samples()
+        for _, p in fs.keyframes[::4]:
+            uv = fs.camera.project(S, p)
+            inside = ((uv >= 0) & (uv < [fs.camera.width, fs.camera.height])).all(axis=1)
+            assert inside.mean() > 0.9
+    assert len(kinds) >= 3  # landmarks and floors vary
+
+
+def test_random_scene_cli(mirage, tmp_path):
+    """`synth --random` writes the default layout plus scene.yaml, byte-identical for the
+    same seed; the scene options it draws itself are refused in one line."""
+    args = ["--random", "5", "--family", "above", "--only", "keyframes,orbit"]
+    args += ["--duration", "0.4", "--fps", "5", "--jobs", "1", "--aa", "1"]
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        p = mirage("synth", out, *args)
+        assert p.returncode == 0, p.stderr
+    for f in ("scene.yaml", "camera_truth.yaml", "orbit_truth.csv", "keyframes/poses.csv",
+              "keyframes/kf_000.jpg"):  # fmt: skip
+        assert (a / f).read_bytes() == (b / f).read_bytes(), f
+    import yaml
+
+    recipe = yaml.safe_load((a / "scene.yaml").read_text())
+    assert recipe["family"] == "above" and recipe["seed"] == 5
+    truth = read_pose_csv(a / "orbit_truth.csv")
+    assert len(truth) == 2 and (truth["landmark_visible"] > 0.3).all()
+    cam = Camera.load(a / "camera_truth.yaml")
+    assert cam.width == 640 and cam.fx != default_camera().fx
+    img = cv2.imread(str(a / "keyframes/kf_000.jpg"))
+    assert img.shape == (480, 640, 3) and img.std() > 10
+    assert_one_line_error(mirage("synth", tmp_path / "c", *args, "--pole"), 2, "--pole")
+    assert_one_line_error(
+        mirage("synth", tmp_path / "c", "--random", "1", "--family", "x"), 2, "family"
+    )

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import yaml
 
-from .. import signals, synth
+from .. import families, signals, synth
 from ..camera import Camera
 from ..errors import InputError, OutputError
 from ..fileio import (
@@ -182,8 +182,26 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     help="The look-away stretch: its length (starting at 78% of the video; 0 = none) or its "
     "start and end times in seconds. Default: min(2.2 s, 11% of the video) at 78%.",
 )
+@click.option(
+    "--random",
+    "random_seed",
+    type=BoundedInt(min=0),
+    metavar="SEED",
+    help="Draw the whole scene at random from SEED within --family (landmark, photographs "
+    "on its faces, floor, light drift, occluder, blur, noise, camera, keyframe and video "
+    "distances); writes OUTDIR/scene.yaml with what was drawn.",
+)
+@shown(
+    "--family",
+    type=click.Choice(families.FAMILIES),
+    default=families.FAMILIES[0],
+    help="With --random: near (video 0.8-2 m away), far (3-5 m, landmark 50-120 px tall, "
+    "keyframes 1-1.5 m), above (video 30-60 deg above the horizon, keyframes 0-20 deg).",
+)
 def synth_cmd(
     outdir,
+    random_seed,
+    family,
     seed,
     camera_path,
     width,
@@ -219,13 +237,11 @@ def synth_cmd(
 
     Example: mirage synth sample_data --seed 0
     """
-    parts = [p.strip() for p in only.split(",") if p.strip()]
-    bad = [p for p in parts if p not in PARTS]
-    if bad or not parts:
-        raise click.BadParameter(
-            f"unknown part(s) {', '.join(bad) or '(none)'}; choose from {', '.join(PARTS)}",
-            param_hint="'--only'",
-        )
+    parts = _parts(only)
+    if random_seed is not None:
+        _refuse_scene_options()
+        _random_scene(outdir, family, random_seed, parts, duration, fps, exposure, jobs, aa)
+        return
     away_s = _parse_look_away(look_away, duration)  # before any rendering
     try:
         cols, rows = parse_board(None, None, board)
@@ -262,6 +278,18 @@ def synth_cmd(
     ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
 
 
+def _parts(only: str) -> list[str]:
+    """`--only`: the parts to write, each one of PARTS."""
+    parts = [p.strip() for p in only.split(",") if p.strip()]
+    bad = [p for p in parts if p not in PARTS]
+    if bad or not parts:
+        raise click.BadParameter(
+            f"unknown part(s) {', '.join(bad) or '(none)'}; choose from {', '.join(PARTS)}",
+            param_hint="'--only'",
+        )
+    return parts
+
+
 def _camera(camera_path, width, height) -> Camera:
     """The camera to render with: the file's or the default webcam, scaled to the size."""
     cam = Camera.load(camera_path) if camera_path else synth.default_camera()
@@ -284,6 +312,73 @@ def _with_ground_board(scene, out: Path):
         f.write("# The ChArUco board on the ground (mirage synth --ground-board).\n")
         yaml.safe_dump(synth.GROUND_BOARD.to_yaml(), f, sort_keys=False, default_flow_style=None)
     return scene
+
+
+# options that shape the default scene; a --random scene draws all of them itself
+SCENE_OPTIONS = (
+    "seed", "camera_path", "width", "height", "keyframe_step", "heights", "radius", "noise",
+    "motion_blur", "ground_board", "floor_tiles", "lookalike", "pole", "video_radius",
+    "turns", "look_away", "jpeg_quality",
+)  # fmt: skip
+
+
+def _refuse_scene_options() -> None:
+    ctx = click.get_current_context()
+    given = [
+        p.opts[0]
+        for p in ctx.command.params
+        if p.name in SCENE_OPTIONS
+        and ctx.get_parameter_source(p.name) is not click.core.ParameterSource.DEFAULT
+    ]
+    if given:
+        raise click.UsageError(
+            f"--random draws the scene itself; drop {', '.join(given)} (or --random)"
+        )
+
+
+def _random_scene(outdir, family, seed, parts, duration, fps, exposure, jobs, aa) -> None:
+    """`synth --random SEED --family F`: the family's scene, written as the default one."""
+    t0 = time.perf_counter()
+    try:
+        fs = families.family_scene(family, seed, duration)
+    except RuntimeError as e:  # scikit-image missing
+        raise InputError(str(e)) from None
+    out = ensure_dir(outdir)
+    fs.camera.save(out / "camera_truth.yaml")
+    with atomic_write(out / "scene.yaml") as f:
+        f.write(f"# mirage synth --random {seed} --family {family}: what was drawn\n")
+        yaml.safe_dump(_plain(fs.recipe), f, sort_keys=False, default_flow_style=None)
+    if "calibration" in parts:
+        cols, rows = synth.CALIB_BOARD
+        _calibration(
+            out / "calibration", fs.camera, cols, rows, synth.CALIB_SQUARE_M, 20, seed,
+            fs.noise, 95, jobs,
+        )  # fmt: skip
+    if "keyframes" in parts:
+        _keyframe_views(
+            out / "keyframes", Renderer(fs.scene, fs.camera, aa=aa), fs.keyframes, seed,
+            fs.noise, 95, jobs,
+        )  # fmt: skip
+    if "orbit" in parts:
+        _orbit(
+            out, Renderer(fs.video_scene, fs.camera, aa=aa), fs.path, fps, seed, fs.noise,
+            fs.motion_blur, exposure, jobs, fs.occluders, fs.samples(), fs.gain_at,
+        )  # fmt: skip
+    ui.echo(
+        f"synth: random {family} scene {seed} ({', '.join(parts)}) in {out} in "
+        f"{time.perf_counter() - t0:.1f} s"
+    )
+
+
+def _plain(v):
+    """numpy scalars and arrays as YAML-safe Python values."""
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.generic):
+        return v.item()
+    return v
 
 
 def _calibration(folder, cam, cols, rows, square, n, seed, noise, quality, jobs):
@@ -311,8 +406,13 @@ def _calibration(folder, cam, cols, rows, square, n, seed, noise, quality, jobs)
 
 
 def _keyframes(folder, renderer, step, radius, heights, seed, noise, quality, jobs):
-    folder = ensure_dir(folder)
     views = synth.keyframe_poses(step, radius, heights)
+    _keyframe_views(folder, renderer, views, seed, noise, quality, jobs)
+    ui.echo(f"synth: {len(views)} keyframes every {step:g} deg in {folder}")
+
+
+def _keyframe_views(folder, renderer, views, seed, noise, quality, jobs):
+    folder = ensure_dir(folder)
     imgs = _render_all(
         renderer, [[p] for _, p in views], noise, seed, "keyframes", jobs, "keyframes"
     )
@@ -321,10 +421,14 @@ def _keyframes(folder, renderer, step, radius, heights, seed, noise, quality, jo
     write_trajectory(
         folder / "poses.csv", [FrameRecord(Status.OK, p, f"{name}.jpg") for name, p in views]
     )
-    ui.echo(f"synth: {len(views)} keyframes every {step:g} deg in {folder}")
 
 
-def _orbit(out: Path, renderer, path, fps, seed, noise, blur, exposure, jobs, occluders):
+def _orbit(
+    out: Path, renderer, path, fps, seed, noise, blur, exposure, jobs, occluders, samples=None,
+    gain=None,
+):  # fmt: skip
+    """The video along `path`; `samples` are the landmark's surface points (visibility),
+    `gain(t)` the lighting's drift (a factor on every pixel)."""
     cam = renderer.camera
     n = int(round(path.duration_s * fps))
     times = np.arange(n) / fps
@@ -333,7 +437,7 @@ def _orbit(out: Path, renderer, path, fps, seed, noise, blur, exposure, jobs, oc
         path.exposure_poses(t, blur, exposure / fps) if blur > 1 else [p]
         for t, p in zip(times, poses, strict=True)
     ]
-    samples = synth.landmark_surface_samples()
+    samples = synth.landmark_surface_samples() if samples is None else samples
     vis = [synth.landmark_visibility(cam, p, samples, occluders) for p in poses]
     with atomic_path(out / "orbit.mp4", verify=lambda p: video_frames_written(p) == n) as tmp:
         writer = cv2.VideoWriter(
@@ -341,7 +445,10 @@ def _orbit(out: Path, renderer, path, fps, seed, noise, blur, exposure, jobs, oc
         )
         if not writer.isOpened():
             raise OutputError("this OpenCV build cannot write mp4 (mp4v) video")
-        for img in _render_all(renderer, pose_lists, noise, seed, "orbit", jobs, "orbit video"):
+        frames = _render_all(renderer, pose_lists, noise, seed, "orbit", jobs, "orbit video")
+        for t, img in zip(times, frames, strict=True):
+            if gain is not None:
+                img = cv2.convertScaleAbs(img, alpha=gain(t))
             writer.write(img)
         writer.release()
     write_trajectory(
