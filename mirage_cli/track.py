@@ -44,6 +44,7 @@ from .solver import (
     solve_pose,
 )
 from .solver import warm_up as _warm_up_solver
+from .tilt import ABOVE_DEG, elevation_deg
 from .trajectory import FrameRecord, Measurement, Reason, Status
 
 RANSAC_HYPOTHESES = RansacOptions.iterations  # how many poses RANSAC tries at most
@@ -329,6 +330,10 @@ class Tracker:
             [_median_depth(kf.pose, X) for kf, X in zip(kfs, self._kf_points, strict=True)]
         )
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
+        # how high each keyframe looks at the landmark (when to match its squashed views)
+        land = P[self.on_landmark] if self.on_landmark.any() else P
+        self._target = land.mean(axis=0) if len(land) else np.zeros(3)
+        self._kf_elev = np.array([elevation_deg(kf.pose.center, self._target) for kf in kfs])
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
         self.model_error_scale = float(model.meta.get("check", {}).get("error_scale", 1.0))
@@ -695,7 +700,7 @@ class Tracker:
         """Guided matches within `radius` of where `pred` projects the nearby keyframes'
         points, and the pose from them (None: too few matches)."""
         cands = list(self.model.nearest_keyframes(pred, self.s.local_keyframes))
-        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        X_all, d_all, kf_of, pid_all = self._candidates(cands, self._below(pred, cands))
         Xc = pred.transform(X_all)
         front = Xc[:, 2] > 1e-3
         uvp = self.camera.project(X_all[front], pred)
@@ -717,11 +722,21 @@ class Tracker:
         return est, uv, X, kf, self.on_landmark[pid_all[ci]]
 
     def _relocalise(self, kps, desc) -> FrameRecord:
-        """Lost: recognise, match, and accept a pose only when the evidence is unambiguous."""
-        cands = [i for i, _ in self.model.recognize(desc, top_k=self.s.global_keyframes)]
+        """Lost: recognise, match, and accept a pose only when the evidence is unambiguous.
+        No pose from the keyframes as they are: again with their squashed views (a camera
+        far above them, tilt.py)."""
+        res = self._relocalise_with(kps, desc, False)
+        if res.status in (Status.OK, Status.UNCERTAIN) or not self.model.has_tilted:
+            return res
+        again = self._relocalise_with(kps, desc, True)
+        return again if again.status in (Status.OK, Status.UNCERTAIN) else res
+
+    def _relocalise_with(self, kps, desc, tilted: bool) -> FrameRecord:
+        found = self.model.recognize(desc, top_k=self.s.global_keyframes, tilted=tilted)
+        cands = [i for i, _ in found]
         if not cands:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_RECOGNISED)
-        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        X_all, d_all, kf_of, pid_all = self._candidates(cands, set(cands) if tilted else ())
         # descriptor matching whose ratio test compares distinct 3D points (the same point
         # seen by two candidate keyframes is not a rival); no position prior: radius inf
         anywhere = np.zeros((len(X_all), 2))
@@ -754,19 +769,32 @@ class Tracker:
             res.inlier_px = self.track_px
         return res
 
-    def _candidates(self, cands):
+    def _candidates(self, cands, tilted=()):
+        """(X, descriptors, keyframe, point id) of the candidate keyframes' linked features;
+        those in `tilted` add the features of their squashed views (tilt.py)."""
         parts = []
         for k in cands:
             if k not in self._kf_cache:
                 kp, d, pid = self.model.keyframes[k].linked()
-                self._kf_cache[k] = (
-                    self.model.points[pid],
-                    d,
-                    np.full(len(pid), k, np.int32),
-                    pid.astype(np.int64),
-                )
+                self._kf_cache[k] = self._rows(k, d, pid)
             parts.append(self._kf_cache[k])
+            t = self.model.keyframes[k].tilted
+            if k in tilted and t is not None and len(t[2]):
+                if (k, "tilt") not in self._kf_cache:
+                    self._kf_cache[k, "tilt"] = self._rows(k, t[1], t[2])
+                parts.append(self._kf_cache[k, "tilt"])
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+
+    def _rows(self, k: int, d: np.ndarray, pid: np.ndarray):
+        d = np.ascontiguousarray(d, dtype=self.model.detector.spec.dtype)
+        return self.model.points[pid], d, np.full(len(pid), k, np.int32), pid.astype(np.int64)
+
+    def _below(self, pose: Pose, cands) -> set[int]:
+        """The candidate keyframes the pose looks down on from `tilt.ABOVE_DEG` higher."""
+        if not self.model.has_tilted:
+            return set()
+        e = elevation_deg(pose.center, self._target)
+        return {k for k in cands if e - self._kf_elev[k] >= ABOVE_DEG}
 
     def _covariances(self, est: PoseEstimate, n: int, points=None):
         return frame_covariances(
