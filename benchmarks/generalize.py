@@ -80,7 +80,7 @@ def scene_folder(family: str, seed: int, frames: int, jobs: int) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     cmd = [sys.executable, "-m", "mirage_cli", "-q", "synth", str(tmp), "--jobs", str(jobs)]
     print(f"rendering {folder.name}: mirage synth {' '.join(args)}", file=sys.stderr)
-    subprocess.run(["nice", "-n", "10", *cmd, *args], check=True, cwd=ROOT)
+    subprocess.run([*cmd, *args], check=True, cwd=ROOT)
     (tmp / "done").write_text(" ".join(args) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)

@@ -34,6 +34,7 @@ from .features import DetectorSettings, detect, make_detector, make_matcher, rat
 from .frames import FrameSource, read_image, resolve_inputs
 from .model import REACH_DEG, Keyframe, LandmarkModel, largest_azimuth_gap, make_thumbnail
 from .pose import Pose
+from .tilt import tilted_features
 from .trajectory import poses_by_frame, read_pose_csv
 
 log = logging.getLogger("mirage")
@@ -119,6 +120,7 @@ class BuildSettings:
     roi: ROI = field(default_factory=lambda: ROI("auto"))
     up: str = "auto"  # W's up axis: auto (from the views) | +z | -z | +y | -y | +x | -x
     max_video_frames: int = 400  # frames examined in a video (evenly spaced)
+    tilted_views: bool = True  # also each keyframe as from 45 and 60 deg higher (tilt.py)
 
 
 UP_AXES = ("auto", "+z", "-z", "+y", "-y", "+x", "-x")
@@ -625,6 +627,15 @@ def build_model(
         Keyframe(v.name, v.pose, kps[i], descs[i], point_ids[i], make_thumbnail(v.image))
         for i, v in enumerate(views)
     ]
+    if settings.tilted_views:
+
+        def tilted(k):
+            v = views[k]
+            return tilted_features(v.image, v.pose, kps[k], point_ids[k], dets[k % workers])
+
+        with ThreadPoolExecutor(workers) as pool:
+            for kf, t in zip(keyframes, pool.map(tilted, range(len(views))), strict=True):
+                kf.tilted = t
     meta = {
         "spacing_deg": settings.spacing_deg,
         "roi": {"kind": roi.kind, "values": list(roi.values), "reason": roi.reason},

@@ -39,6 +39,9 @@ class Keyframe:
     descriptors: np.ndarray  # (N,D) of the detector spec's dtype (float32 SIFT, uint8 ORB)
     point_ids: np.ndarray  # (N,) int32 index into LandmarkModel.points, -1 = no 3D point
     thumbnail: np.ndarray  # small grey uint8 image (width THUMB_WIDTH)
+    # features of the keyframe's views squashed as from higher up (tilt.py), each linked
+    # to one of its points: (keypoints, descriptors, point ids); None: not made
+    tilted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
     def linked(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keypoints, descriptors, point_ids) of the features that have a 3D point."""
@@ -56,20 +59,33 @@ def make_thumbnail(gray: np.ndarray, width: int = THUMB_WIDTH) -> np.ndarray:
 
 
 class KeyframeRecognition:
-    """Global recognition of a model's keyframes from a frame's descriptors (a part of
-    `LandmarkModel`: it reads `keyframes` and `detector` and keeps the index in `_index`)."""
+    """Which keyframes see a frame: by its descriptors (global recognition) or by its pose
+    (a part of `LandmarkModel`: it reads `keyframes`, `points` and `detector` and keeps the
+    indexes in `_index` and `_tilted_index`)."""
 
-    def _build_index(self):
-        """One matcher over all keyframes' linked descriptors, with the owner of each row."""
+    @property
+    def has_tilted(self) -> bool:
+        return any(kf.tilted is not None and len(kf.tilted[2]) for kf in self.keyframes)
+
+    def _build_index(self, tilted: bool = False):
+        """One matcher over all keyframes' linked descriptors (`tilted`: and those of their
+        squashed views), with the owner of each row."""
         descs, owner, pids = [], [], []
         for i, kf in enumerate(self.keyframes):
             _, d, p = kf.linked()
+            if tilted and kf.tilted is not None and len(kf.tilted[2]):
+                d = np.concatenate([d, kf.tilted[1].astype(d.dtype, copy=False)])
+                p = np.concatenate([p, kf.tilted[2]])
             descs.append(d)
             owner.append(np.full(len(d), i, np.int32))
             pids.append(p)
         if not descs or sum(len(d) for d in descs) == 0:
-            self._index = (None, np.zeros(0, np.int32), np.zeros(0, np.int32))
-            return self._index
+            index = (None, np.zeros(0, np.int32), np.zeros(0, np.int32))
+            if tilted:
+                self._tilted_index = index
+            else:
+                self._index = index
+            return index
         alld = np.ascontiguousarray(np.concatenate(descs))
         if self.detector.spec.norm == cv2.NORM_HAMMING:
             matcher = make_matcher(self.detector)
@@ -79,8 +95,12 @@ class KeyframeRecognition:
             )  # KD-tree: 20-50x faster than brute force over ~20k descriptors
         matcher.add([alld])
         matcher.train()
-        self._index = (matcher, np.concatenate(owner), np.concatenate(pids))
-        return self._index
+        index = (matcher, np.concatenate(owner), np.concatenate(pids))
+        if tilted:
+            self._tilted_index = index
+        else:
+            self._index = index
+        return index
 
     def prepare_recognition(self) -> None:
         """Build the recognition index now (FLANN over every linked descriptor: 0.1 s for
@@ -88,7 +108,9 @@ class KeyframeRecognition:
         if self._index is None:
             self._build_index()
 
-    def recognize(self, descriptors: np.ndarray, top_k: int = 3) -> list[tuple[int, float]]:
+    def recognize(
+        self, descriptors: np.ndarray, top_k: int = 3, tilted: bool = False
+    ) -> list[tuple[int, float]]:
         """Keyframes that most likely see the same side as a frame's descriptors.
 
         Each query votes for the keyframe of its nearest linked descriptor when it passes
@@ -103,7 +125,8 @@ class KeyframeRecognition:
         """
         if len(descriptors) == 0 or not self.keyframes:
             return []
-        matcher, owner, pids = self._index if self._index is not None else self._build_index()
+        index = self._tilted_index if tilted else self._index
+        matcher, owner, pids = index if index is not None else self._build_index(tilted)
         if matcher is None:
             return []
         q = np.ascontiguousarray(descriptors, dtype=self.detector.spec.dtype)
@@ -120,6 +143,23 @@ class KeyframeRecognition:
         order = np.argsort(-votes, kind="stable")
         order = np.concatenate([order[beyond[order]], order[~beyond[order]]])[:top_k]
         return [(int(i), float(votes[i])) for i in order if votes[i] > 0]
+
+    def nearest_keyframes(self, pose: Pose, k: int = 3) -> list[int]:
+        """Keyframes whose viewpoint is closest: direction from the landmark to the camera
+        centre, plus half the angle between the optical axes (so a camera that turned
+        away is not matched to a keyframe that looks the other way)."""
+        if not self.keyframes:
+            return []
+        target = self.points.mean(axis=0) if len(self.points) else np.zeros(3)
+        centers = np.array([kf.pose.center for kf in self.keyframes]) - target
+        axes = np.array([kf.pose.R[2] for kf in self.keyframes])  # optical axis in W
+        c = pose.center - target
+        cos_dir = centers @ c / (np.linalg.norm(centers, axis=1) * np.linalg.norm(c) + 1e-12)
+        cos_ax = axes @ pose.R[2]
+        d = np.arccos(np.clip(cos_dir, -1, 1)) + 0.5 * np.arccos(np.clip(cos_ax, -1, 1))
+        return [int(i) for i in np.argsort(d, kind="stable")[:k]]
+
+    # --- files --------------------------------------------------------------------------
 
 
 @dataclass
@@ -138,6 +178,7 @@ class LandmarkModel(KeyframeRecognition):
     version: int = FORMAT_VERSION
     meta: dict = field(default_factory=dict)  # build settings: spacing_deg, roi, inputs, ...
     _index: object = field(default=None, repr=False, compare=False)
+    _tilted_index: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         self.points = np.asarray(self.points, float).reshape(-1, 3)
@@ -168,41 +209,8 @@ class LandmarkModel(KeyframeRecognition):
 
     def summary(self) -> dict:
         """Numbers people check after a build: size, track length, accuracy, coverage."""
-        err = self.reprojection_errors()
-        linked = np.array([kf.n_linked for kf in self.keyframes]) if self.keyframes else [0]
-        obs = self.point_observations.get("point", np.zeros(0))
-        gap, coverage, spacing = azimuth_gaps(self.azimuths())
-        return {
-            "keyframes": len(self.keyframes),
-            "points": len(self.points),
-            "observations": int(len(obs)),
-            "mean_track_length": float(len(obs) / max(1, len(self.points))),
-            "linked_per_keyframe_min": int(np.min(linked)),
-            "linked_per_keyframe_median": float(np.median(linked)),
-            "mean_reprojection_px": float(err.mean()) if err.size else float("nan"),
-            "rms_reprojection_px": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
-            "azimuth_coverage_deg": coverage,
-            "largest_gap_deg": gap,
-            "spacing_deg": spacing,
-            "detector": self.detector.name,
-        }
+        return model_summary(self)
 
-    def nearest_keyframes(self, pose: Pose, k: int = 3) -> list[int]:
-        """Keyframes whose viewpoint is closest: direction from the landmark to the camera
-        centre, plus half the angle between the optical axes (so a camera that turned
-        away is not matched to a keyframe that looks the other way)."""
-        if not self.keyframes:
-            return []
-        target = self.points.mean(axis=0) if len(self.points) else np.zeros(3)
-        centers = np.array([kf.pose.center for kf in self.keyframes]) - target
-        axes = np.array([kf.pose.R[2] for kf in self.keyframes])  # optical axis in W
-        c = pose.center - target
-        cos_dir = centers @ c / (np.linalg.norm(centers, axis=1) * np.linalg.norm(c) + 1e-12)
-        cos_ax = axes @ pose.R[2]
-        d = np.arccos(np.clip(cos_dir, -1, 1)) + 0.5 * np.arccos(np.clip(cos_ax, -1, 1))
-        return [int(i) for i in np.argsort(d, kind="stable")[:k]]
-
-    # --- files --------------------------------------------------------------------------
     def save(self, path) -> None:
         """Write the model atomically as one zip file (see the module docstring)."""
         arrays = self._arrays()
@@ -287,6 +295,27 @@ class LandmarkModel(KeyframeRecognition):
             "obs_point": np.asarray(obs.get("point", []), np.int32),
             "obs_keyframe": np.asarray(obs.get("keyframe", []), np.int32),
             "obs_feature": np.asarray(obs.get("feature", []), np.int32),
+            **self._tilted_arrays(dim),
+        }
+
+    def _tilted_arrays(self, dim: int) -> dict[str, np.ndarray]:
+        """The squashed views' features (tilt.py), concatenated like the keyframes'."""
+        if not self.has_tilted:
+            return {}
+        parts = [
+            kf.tilted if kf.tilted is not None else (np.zeros((0, 2)), np.zeros((0, dim)), [])
+            for kf in self.keyframes
+        ]
+        counts = [len(p[2]) for p in parts]
+        desc = np.concatenate([np.asarray(p[1]) for p in parts])
+        if desc.dtype != np.uint8 and np.array_equal(desc, np.round(desc)):
+            if desc.size == 0 or (desc.min() >= 0 and desc.max() <= 255):
+                desc = desc.astype(np.uint8)
+        return {
+            "tilt_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            "tilt_keypoints": np.concatenate([p[0] for p in parts]).astype(np.float32),
+            "tilt_descriptors": np.ascontiguousarray(desc),
+            "tilt_point_ids": np.concatenate([np.asarray(p[2]) for p in parts]).astype(np.int32),
         }
 
     @classmethod
@@ -356,10 +385,38 @@ class LandmarkModel(KeyframeRecognition):
                     a["thumbnails"][th_off[i] : th_off[i + 1]].reshape(h, w),
                 )
             )
+        if "tilt_offsets" in a:  # models made with squashed views (tilt.py)
+            to = a["tilt_offsets"]
+            td = a["tilt_descriptors"].astype(detector.spec.dtype, copy=False)
+            for i, kf in enumerate(kfs):
+                s, e = int(to[i]), int(to[i + 1])
+                kf.tilted = (a["tilt_keypoints"][s:e], td[s:e], a["tilt_point_ids"][s:e])
         obs = {"point": a["obs_point"], "keyframe": a["obs_keyframe"], "feature": a["obs_feature"]}
         return cls(
             camera, detector, kfs, a["points"], obs, int(manifest["version"]), manifest["meta"]
         )
+
+
+def model_summary(model: LandmarkModel) -> dict:
+    """Numbers people check after a build: size, track length, accuracy, coverage."""
+    err = model.reprojection_errors()
+    linked = np.array([kf.n_linked for kf in model.keyframes]) if model.keyframes else [0]
+    obs = model.point_observations.get("point", np.zeros(0))
+    gap, coverage, spacing = azimuth_gaps(model.azimuths())
+    return {
+        "keyframes": len(model.keyframes),
+        "points": len(model.points),
+        "observations": int(len(obs)),
+        "mean_track_length": float(len(obs) / max(1, len(model.points))),
+        "linked_per_keyframe_min": int(np.min(linked)),
+        "linked_per_keyframe_median": float(np.median(linked)),
+        "mean_reprojection_px": float(err.mean()) if err.size else float("nan"),
+        "rms_reprojection_px": float(np.sqrt(np.mean(err**2))) if err.size else float("nan"),
+        "azimuth_coverage_deg": coverage,
+        "largest_gap_deg": gap,
+        "spacing_deg": spacing,
+        "detector": model.detector.name,
+    }
 
 
 def point_twins(model: LandmarkModel, separation_m: float = 0.05, k: int = 4) -> np.ndarray:

@@ -264,7 +264,7 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
             np.zeros(3), cov[3:, 3:] / 10
         )
         window.append(WorldMeasurement(np.eye(3), center, np.linalg.inv(cov), np.zeros((6, 6)),
-                                       anchor, 1.0, 10.0))  # fmt: skip
+                                       cov, anchor, 1.0, 10.0))  # fmt: skip
     q = np.array([np.radians(40.0) ** 2] * 3 + [3.0**2] * 3) * dt**3
     H, b = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
     for i, m in enumerate(window):
@@ -366,7 +366,9 @@ def test_the_smoother_windows_the_stretch_and_times_the_prior(fps):
     pose, cov = smooth_window(window, k - 7, float(f"{dt:.4g}"), s)
     assert got.status == Status.OK
     assert got.pose.distance_to(pose) < 1e-12 and got.pose.angle_to(pose) < 1e-5
-    pos, rot = sigmas(cov + world_covariance(shared, recs[k].measurement.pose))
+    m = recs[k].measurement
+    own = world_covariance(m.cov, m.pose)  # its correlated share is added back too
+    pos, rot = sigmas(cov + world_covariance(shared, m.pose) + s.correlated * own)
     assert got.sigma_pos_m == pytest.approx(min(pos, recs[k].sigma_pos_m), rel=1e-9)
     assert got.sigma_rot_deg == pytest.approx(min(rot, recs[k].sigma_rot_deg), rel=1e-9)
 

@@ -49,7 +49,15 @@ def model_lines(model: LandmarkModel) -> list[str]:
         *_roi_lines(model),
         *_up_lines(model),
         *_check_lines(model),
+        *_tilt_lines(model),
     ]
+
+
+def _tilt_lines(model: LandmarkModel) -> list[str]:
+    if not model.has_tilted:
+        return []
+    n = sum(len(kf.tilted[2]) for kf in model.keyframes)
+    return [f"tilted views       {n} features of the keyframes as from 45 and 60 deg higher"]
 
 
 def _kept_lines(model: LandmarkModel) -> list[str]:
@@ -164,6 +172,14 @@ class _Stages:
     default=BuildSettings.min_angle_deg,
     help="Minimum triangulation angle.",
 )
+@click.option(
+    "--tilted-views/--no-tilted-views",
+    default=BuildSettings.tilted_views,
+    show_default=True,
+    help="Also store each keyframe's features as seen from 45 and 60 deg higher (views "
+    "squashed along the up axis), for videos from well above the keyframes (a drone over "
+    "a model made on foot). Off: a 30% smaller, faster-built model.",
+)
 def build_model_cmd(
     inputs,
     camera_path,
@@ -178,6 +194,7 @@ def build_model_cmd(
     up,
     max_reproj_px,
     min_angle_deg,
+    tilted_views,
 ):
     """Build a 360-degree landmark model from images (a folder or glob) or a video.
 
@@ -207,6 +224,7 @@ def build_model_cmd(
         min_angle_deg=min_angle_deg,
         roi=ROI.parse(roi),
         up=up,
+        tilted_views=tilted_views,
     )
     stages = _Stages()
     try:

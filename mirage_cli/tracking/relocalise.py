@@ -84,11 +84,21 @@ class Relocalisation:
         return self._relocalise(kps, desc)
 
     def _relocalise(self, kps, desc) -> FrameRecord:
-        """Lost: recognise, match, and accept a pose only when the evidence is unambiguous."""
-        cands = [i for i, _ in self.model.recognize(desc, top_k=self.settings.global_keyframes)]
+        """Lost: recognise, match, and accept a pose only when the evidence is unambiguous.
+        No pose from the keyframes as they are: again with their squashed views (a camera
+        far above them, tilt.py)."""
+        res = self._relocalise_with(kps, desc, False)
+        if res.status in (Status.OK, Status.UNCERTAIN) or not self.model.has_tilted:
+            return res
+        again = self._relocalise_with(kps, desc, True)
+        return again if again.status in (Status.OK, Status.UNCERTAIN) else res
+
+    def _relocalise_with(self, kps, desc, tilted: bool) -> FrameRecord:
+        found = self.model.recognize(desc, top_k=self.settings.global_keyframes, tilted=tilted)
+        cands = [i for i, _ in found]
         if not cands:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_RECOGNISED)
-        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        X_all, d_all, kf_of, pid_all = self._candidates(cands, set(cands) if tilted else ())
         # descriptor matching whose ratio test compares distinct 3D points (the same point
         # seen by two candidate keyframes is not a rival); no position prior: radius inf
         anywhere = np.zeros((len(X_all), 2))

@@ -10,6 +10,7 @@ from ..features import guided_match
 from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
 from ..solver import solve_pose
+from ..tilt import ABOVE_DEG, elevation_deg
 
 # a shrunk box keeps this much more resolution than the keyframes' (sub-pixel keypoints):
 # 720p / 1080p orbits against the sample's model, p95 2.52 / 2.62 mm shrunk to the keyframes'
@@ -82,7 +83,7 @@ class GuidedSearch:
         """Guided matches within `radius` of where `pred` projects the nearby keyframes'
         points, and the pose from them (None: too few matches)."""
         cands = list(self.model.nearest_keyframes(pred, self.settings.local_keyframes))
-        X_all, d_all, kf_of, pid_all = self._candidates(cands)
+        X_all, d_all, kf_of, pid_all = self._candidates(cands, self._below(pred, cands))
         Xc = pred.transform(X_all)
         front = Xc[:, 2] > 1e-3
         uvp = self.camera.project(X_all[front], pred)
@@ -105,16 +106,29 @@ class GuidedSearch:
         )
         return est, uv, X, kf, self.on_landmark[pid_all[ci]]
 
-    def _candidates(self, cands):
+    def _candidates(self, cands, tilted=()):
+        """(X, descriptors, keyframe, point id) of the candidate keyframes' linked features;
+        those in `tilted` add the features of their squashed views (tilt.py)."""
         parts = []
         for k in cands:
             if k not in self._kf_cache:
                 kp, d, pid = self.model.keyframes[k].linked()
-                self._kf_cache[k] = (
-                    self.model.points[pid],
-                    d,
-                    np.full(len(pid), k, np.int32),
-                    pid.astype(np.int64),
-                )
+                self._kf_cache[k] = self._rows(k, d, pid)
             parts.append(self._kf_cache[k])
+            t = self.model.keyframes[k].tilted
+            if k in tilted and t is not None and len(t[2]):
+                if (k, "tilt") not in self._kf_cache:
+                    self._kf_cache[k, "tilt"] = self._rows(k, t[1], t[2])
+                parts.append(self._kf_cache[k, "tilt"])
         return tuple(np.concatenate([p[i] for p in parts]) for i in range(4))
+
+    def _rows(self, k: int, d: np.ndarray, pid: np.ndarray):
+        d = np.ascontiguousarray(d, dtype=self.model.detector.spec.dtype)
+        return self.model.points[pid], d, np.full(len(pid), k, np.int32), pid.astype(np.int64)
+
+    def _below(self, pose: Pose, cands) -> set[int]:
+        """The candidate keyframes the pose looks down on from `tilt.ABOVE_DEG` higher."""
+        if not self.model.has_tilted:
+            return set()
+        e = elevation_deg(pose.center, self._target)
+        return {k for k in cands if e - self._kf_elev[k] >= ABOVE_DEG}

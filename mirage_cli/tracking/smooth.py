@@ -14,7 +14,10 @@ What keeps it honest:
   errors are correlated: the k frames of one anchor in the window count as one
   measurement (each covariance times k).
 - The model's own error is shared by every frame that sees the same points; it is not
-  averaged down but added back to the smoothed covariance.
+  averaged down but added back to the smoothed covariance. So is a share (`correlated`)
+  of each frame's own covariance: detections in a row see the same features from nearly
+  the same place and err alike (far frames smoothed as independent came out 3-4 sigma
+  off together).
 - A pose that does not fit the others (Mahalanobis distance beyond `outlier_chi2`) is
   dropped from the window; if it is the output frame's own, that frame keeps its tracked
   values (a manoeuvre the prior does not expect, or a wrong pose the tracker's gate let
@@ -51,6 +54,8 @@ class SmoothSettings:
     max_gap: int = 3  # more frames in a row without a pose split the trajectory
     min_side: int = 3  # fewer poses than this before or after a frame: it stays as tracked
     outlier_chi2: float = 22.46  # chi-square, 6 dof, p = 0.999
+    correlated: float = 0.1  # share of a frame's own covariance its neighbours share,
+    # not averaged down (random far scenes, tuning seeds: 0.1 ends 3.6-sigma runs)
     max_prior_excess: float = 25.0  # a window whose motion costs the prior more than this
     # per degree of freedom (5 sigma on average) is not what it describes: as tracked
     fps: float = 30.0  # frame rate when the records carry no times
@@ -73,6 +78,7 @@ class WorldMeasurement:
     center: np.ndarray
     info: np.ndarray
     shared: np.ndarray  # the model's error in W: added back after smoothing
+    own: np.ndarray  # this frame's own covariance in W (its correlated share is added back)
     anchor: int
     max_pos: float
     max_rot: float
@@ -89,8 +95,8 @@ def prepare(m: Measurement | None) -> WorldMeasurement | None:
     except np.linalg.LinAlgError:
         return None
     shared = world_covariance(m.cov_shared, m.pose)
-    return WorldMeasurement(m.pose.R.T, m.pose.center, info, shared, m.anchor, m.max_sigma_pos_m,
-              m.max_sigma_rot_deg)  # fmt: skip
+    return WorldMeasurement(m.pose.R.T, m.pose.center, info, shared, C, m.anchor,
+                            m.max_sigma_pos_m, m.max_sigma_rot_deg)  # fmt: skip
 
 
 _A = np.hstack([np.eye(6), -2 * np.eye(6), np.eye(6)])  # second difference of 3 frames
@@ -308,7 +314,7 @@ class Smoother:
         if got is None:  # nothing to smooth with, or the frame does not fit its
             return rec  # neighbours (a manoeuvre the prior does not expect): as tracked
         pose, cov = got
-        cov = cov + m.shared
+        cov = cov + m.shared + s.correlated * m.own
         # with this frame's own evidence in it, the smoothed pose is not worse than the
         # tracked one; a larger sigma only comes from counting a flowed run as one
         # measurement, which is cautious

@@ -34,6 +34,7 @@ from ..records import FrameRecord, Reason, Status
 from ..signals import through_compiled_code
 from ..solver import PoseEstimate
 from ..solver import warm_up as _warm_up_solver
+from ..tilt import elevation_deg
 from .flow import FlowTracking, _deviation
 from .gating import PoseGate
 from .relocalise import Relocalisation
@@ -113,6 +114,10 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             [_median_depth(kf.pose, X) for kf, X in zip(kfs, self._kf_points, strict=True)]
         )
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
+        # how high each keyframe looks at the landmark (when to match its squashed views)
+        land = P[self.on_landmark] if self.on_landmark.any() else P
+        self._target = land.mean(axis=0) if len(land) else np.zeros(3)
+        self._kf_elev = np.array([elevation_deg(kf.pose.center, self._target) for kf in kfs])
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
         self.model_error_scale = float(model.meta.get("check", {}).get("error_scale", 1.0))
