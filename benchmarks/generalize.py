@@ -36,10 +36,15 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import yaml
-
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
+
+blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage`
+
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
 
 
 def _stress():
@@ -51,7 +56,7 @@ def _stress():
     return mod
 
 
-stress = _stress()  # sets the BLAS threads before numpy's first heavy use, as mirage does
+stress = _stress()
 
 from mirage_cli import __version__  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
