@@ -133,9 +133,12 @@ SCENES = {
 }
 
 
-def _synth(out: Path, args: list[str], jobs: int) -> Path:
-    """Render `mirage synth` into a cache folder named by its arguments (atomic)."""
-    key = hashlib.sha1(repr((CACHE_VERSION, args)).encode()).hexdigest()[:12]
+def _synth(
+    out: Path, args: list[str], jobs: int, version: int = CACHE_VERSION, nice: int = 10
+) -> Path:
+    """Render `mirage synth` into a cache folder named by its arguments and the cache
+    `version` of what draws them (atomic); `nice` 0 renders at normal priority."""
+    key = hashlib.sha1(repr((version, args)).encode()).hexdigest()[:12]
     folder = CACHE / f"{out.name}-{key}"
     if (folder / "done").is_file():
         return folder
@@ -143,7 +146,7 @@ def _synth(out: Path, args: list[str], jobs: int) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     cmd = [sys.executable, "-m", "mirage_cli", "-q", "synth", str(tmp), "--jobs", str(jobs)]
     print(f"rendering {folder.name}: mirage synth {' '.join(args)}", file=sys.stderr)
-    subprocess.run(["nice", "-n", "10", *cmd, *args], check=True, cwd=ROOT)
+    subprocess.run(["nice", "-n", str(nice), *cmd, *args], check=True, cwd=ROOT)
     (tmp / "done").write_text(" ".join(args) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
     tmp.rename(folder)

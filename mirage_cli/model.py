@@ -270,11 +270,7 @@ class LandmarkModel(KeyframeRecognition):
         desc = [kf.descriptors for kf in kfs]
         dim = desc[0].shape[1] if desc else 128
         all_desc = np.concatenate(desc) if desc else np.zeros((0, dim), np.float32)
-        # SIFT descriptors are integers 0..255 held as float: bytes on disk, lossless (`load`
-        # casts back to the detector's dtype); RootSIFT's are not integers and stay float
-        if all_desc.dtype != np.uint8 and np.array_equal(all_desc, np.round(all_desc)):
-            if all_desc.size == 0 or (all_desc.min() >= 0 and all_desc.max() <= 255):
-                all_desc = all_desc.astype(np.uint8)
+        all_desc = _stored_descriptors(all_desc)
         thumbs = [kf.thumbnail for kf in kfs]
         th_shapes = np.array([t.shape[:2] for t in thumbs], np.int64).reshape(-1, 2)
         obs = self.point_observations
@@ -307,10 +303,7 @@ class LandmarkModel(KeyframeRecognition):
             for kf in self.keyframes
         ]
         counts = [len(p[2]) for p in parts]
-        desc = np.concatenate([np.asarray(p[1]) for p in parts])
-        if desc.dtype != np.uint8 and np.array_equal(desc, np.round(desc)):
-            if desc.size == 0 or (desc.min() >= 0 and desc.max() <= 255):
-                desc = desc.astype(np.uint8)
+        desc = _stored_descriptors(np.concatenate([np.asarray(p[1]) for p in parts]))
         return {
             "tilt_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
             "tilt_keypoints": np.concatenate([p[0] for p in parts]).astype(np.float32),
@@ -504,6 +497,15 @@ def ground_points(
     r_on = np.percentile(np.hypot(*(P[on, :2] - c).T), 90)
     r_off = np.percentile(np.hypot(*(P[~on, :2] - c).T), 90)
     return on if r_on > 1.5 * r_off else ground
+
+
+def _stored_descriptors(desc: np.ndarray) -> np.ndarray:
+    """SIFT descriptors are integers 0..255 held as float: bytes on disk, lossless (`load`
+    casts back to the detector's dtype); RootSIFT's are not integers and stay float."""
+    if desc.dtype != np.uint8 and np.array_equal(desc, np.round(desc)):
+        if desc.size == 0 or (desc.min() >= 0 and desc.max() <= 255):
+            return desc.astype(np.uint8)
+    return desc
 
 
 def observations_from_keyframes(keyframes: list[Keyframe]) -> dict[str, np.ndarray]:

@@ -88,7 +88,7 @@ class Relocalisation:
         No pose from the keyframes as they are: again with their squashed views (a camera
         far above them, tilt.py)."""
         res = self._relocalise_with(kps, desc, False)
-        if res.status != Status.LOST or not self.model.has_tilted:
+        if res.status != Status.LOST or not self._has_tilted:
             return res  # found, or ambiguous: more matches to one side do not settle that
         again = self._relocalise_with(kps, desc, True)
         return again if again.status in (Status.OK, Status.UNCERTAIN) else res

@@ -128,7 +128,7 @@ class GuidedSearch:
 
     def _below(self, pose: Pose, cands) -> set[int]:
         """The candidate keyframes the pose looks down on from `tilt.ABOVE_DEG` higher."""
-        if not self.model.has_tilted:
+        if not self._has_tilted:
             return set()
         e = elevation_deg(pose.center, self._target)
         return {k for k in cands if e - self._kf_elev[k] >= ABOVE_DEG}

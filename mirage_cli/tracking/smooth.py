@@ -16,8 +16,8 @@ What keeps it honest:
 - The model's own error is shared by every frame that sees the same points; it is not
   averaged down but added back to the smoothed covariance. So is a share (`correlated`)
   of each frame's own covariance: detections in a row see the same features from nearly
-  the same place and err alike (far frames smoothed as independent came out 3-4 sigma
-  off together).
+  the same place and err alike (far frames smoothed as independent came out up to 3.6
+  sigma off together).
 - A pose that does not fit the others (Mahalanobis distance beyond `outlier_chi2`) is
   dropped from the window; if it is the output frame's own, that frame keeps its tracked
   values (a manoeuvre the prior does not expect, or a wrong pose the tracker's gate let

@@ -118,6 +118,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         land = P[self.on_landmark] if self.on_landmark.any() else P
         self._target = land.mean(axis=0) if len(land) else np.zeros(3)
         self._kf_elev = np.array([elevation_deg(kf.pose.center, self._target) for kf in kfs])
+        self._has_tilted = model.has_tilted  # once: every detection asks
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
         self.model_error_scale = float(model.meta.get("check", {}).get("error_scale", 1.0))
