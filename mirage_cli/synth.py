@@ -47,9 +47,24 @@ def _shade(normal) -> float:
     return float(0.55 + 0.45 * max(0.0, float(np.dot(normal, LIGHT))))
 
 
-def _box_faces(name, bounds, seed, markers, marker_normals, lookalike=False):
+def weak_texture(rng: np.random.Generator, tex: np.ndarray, patches: int = 2) -> np.ndarray:
+    """Plain paint with a few printed patches: the texture's own colour, smoothed flat,
+    keeping `patches` squares of it (each about 30% of the shorter side), as a painted
+    crate with a label or two. Few corners, mostly in the patches."""
+    h, w = tex.shape[:2]
+    paint = np.full_like(tex, np.median(tex.reshape(-1, 3), axis=0).astype(np.uint8))
+    out = cv2.addWeighted(paint, 0.85, cv2.GaussianBlur(tex, (0, 0), 25), 0.15, 0.0)
+    s = max(8, int(0.3 * min(h, w)))
+    for _ in range(patches):
+        y, x = int(rng.integers(0, max(1, h - s))), int(rng.integers(0, max(1, w - s)))
+        out[y : y + s, x : x + s] = tex[y : y + s, x : x + s]
+    return out
+
+
+def _box_faces(name, bounds, seed, markers, marker_normals, lookalike=False, weak=False):
     """Four sides and the top of a box, each with its own texture and 3 corner markers
-    (with `lookalike` the -x / -y sides copy the +x / +y sides: a 180-degree twin)."""
+    (with `lookalike` the -x / -y sides copy the +x / +y sides: a 180-degree twin; with
+    `weak` each face is plain paint with a few patches)."""
     (x0, x1), (y0, y1), (z0, z1) = bounds
     c = np.array([(x0 + x1) / 2, (y0 + y1) / 2, (z0 + z1) / 2])
     half = np.array([(x1 - x0) / 2, (y1 - y0) / 2, (z1 - z0) / 2])
@@ -76,6 +91,8 @@ def _box_faces(name, bounds, seed, markers, marker_normals, lookalike=False):
         rng = stable_rng(seed, f"{name}{twin}")
         tw, th = int(round(wu / TEXEL_M)), int(round(wv / TEXEL_M))
         tex = random_texture(rng, tw, th, density=1.3)
+        if weak:
+            tex = weak_texture(rng, tex)
         for _ in range(3):  # X-junction markers: exact, sub-pixel-detectable 3D points
             s = 12
             kx, ky = int(rng.integers(30, tw - 30)), int(rng.integers(30, th - 30))
@@ -115,17 +132,19 @@ class Disk(Rect):
 
 
 def landmark_scene(
-    seed: int = 0, floor_tile_m: float | None = None, lookalike: bool = False
-) -> Scene:
+    seed: int = 0, floor_tile_m: float | None = None, lookalike: bool = False,
+    weak: bool = False,
+) -> Scene:  # fmt: skip
     """The landmark at the origin on a textured ground inside a textured round room.
 
     Stress options (off by default, so the default scene is unchanged): `floor_tile_m`
     makes the ground one texture tile repeated with that period (every floor feature has
     exact twins one period apart); `lookalike` gives opposite sides of the landmark the
-    same texture (box sides and the two halves of the cylinder)."""
+    same texture (box sides and the two halves of the cylinder); `weak` paints the
+    landmark plain with a few textured patches per face (a weakly textured landmark)."""
     surfaces, markers, normals = [], [], []
     for name, bounds in BOXES.items():
-        surfaces += _box_faces(name, bounds, seed, markers, normals, lookalike)
+        surfaces += _box_faces(name, bounds, seed, markers, normals, lookalike, weak)
     cyl = CYLINDER
     circ = 2 * np.pi * cyl["radius"]
     h = cyl["z"][1] - cyl["z"][0]
@@ -139,6 +158,8 @@ def landmark_scene(
             stable_rng(seed, "cylinder"), int(circ / TEXEL_M), int(h / TEXEL_M), density=1.3
         )
         cyl_texel = TEXEL_M
+    if weak:
+        tex = weak_texture(stable_rng(seed, "cylinder-weak"), tex, patches=3)
     surfaces.append(
         Cylinder("cylinder", cyl["center"], cyl["radius"], *cyl["z"], cyl_texel, tex, light=LIGHT)
     )
@@ -150,7 +171,9 @@ def landmark_scene(
             cyl["radius"],
             cyl["z"][1],
             TEXEL_M,
-            random_texture(stable_rng(seed, "cap"), d, d),
+            (weak_texture if weak else lambda _r, t: t)(
+                stable_rng(seed, "cap-weak"), random_texture(stable_rng(seed, "cap"), d, d)
+            ),
             _shade(np.array([0, 0, 1])),
         )
     )
@@ -455,6 +478,14 @@ class OrbitPath:
             "direction": "ccw",
             "look_at_m": [float(v) for v in LANDMARK_TARGET],
         }
+
+
+def dusk_frame(img: np.ndarray, progress: float, seed: int, i: int) -> np.ndarray:
+    """A frame at dusk: the light at 1 - 0.75 * progress (progress 0..1 over the video) and
+    sensor noise that rises as it falls (+3 grey levels sigma at 25%)."""
+    g = 1.0 - 0.75 * float(np.clip(progress, 0.0, 1.0))
+    noise = stable_rng(seed, f"dusk-{i}").normal(0.0, 4.0 * (1.0 - g), img.shape)
+    return np.clip(img.astype(np.float32) * g + noise, 0, 255).astype(np.uint8)
 
 
 def encode_jpeg(img: np.ndarray, quality: int = 95) -> bytes:

@@ -332,6 +332,36 @@ def test_stress_options_cli(mirage, tmp_path):
     assert (a / "keyframes/kf_000.jpg").read_bytes() != (b / "keyframes/kf_000.jpg").read_bytes()
 
 
+def test_weak_texture_dusk_and_height_options(mirage, tmp_path):
+    """--weak-texture leaves the landmark a fraction of its corners, --dusk dims the video
+    to 25% by its end with more noise, --video-height lifts the orbit (a view from above)."""
+    from mirage_cli.synth import dusk_frame
+
+    cam = default_camera().scaled(320, 240)
+    pose = look_at([0.75, -0.2, 0.3], [0, 0, 0.25])  # the landmark fills the view
+    gray = [
+        cv2.cvtColor(Renderer(landmark_scene(0, weak=w), cam).render(pose), cv2.COLOR_BGR2GRAY)
+        for w in (False, True)
+    ]
+    corners = [len(cv2.goodFeaturesToTrack(g, 500, 0.02, 3)) for g in gray]
+    assert corners[1] < 0.6 * corners[0], corners
+    img = np.full((40, 40, 3), 200, np.uint8)
+    start, end = dusk_frame(img, 0.0, 0, 0), dusk_frame(img, 1.0, 0, 1)
+    assert np.array_equal(start, img)
+    assert abs(end.mean() - 50) < 1 and 2.5 < end.std() < 3.5
+    common = ["--width", "64", "--duration", "1", "--fps", "5", "--jobs", "1", "--aa", "1"]
+    p = mirage("synth", tmp_path / "d", *common, "--only", "orbit", "--dusk",
+               "--video-height", "2.2")  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    truth = read_pose_csv(tmp_path / "d" / "orbit_truth.csv")
+    assert ((truth["z_m"] > 1.9) & (truth["z_m"] < 2.5)).all()
+    cap = cv2.VideoCapture(str(tmp_path / "d" / "orbit.mp4"))
+    means = []
+    while (ok_img := cap.read())[0]:
+        means.append(ok_img[1].mean())
+    assert len(means) == 5 and means[-1] < 0.45 * means[0]
+
+
 # --- random scene families ---------------------------------------------------------------
 @pytest.mark.parametrize("family", ["near", "far", "above"])
 def test_random_families_draw_what_they_promise(family):

@@ -152,6 +152,17 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     help="Stress: opposite sides of the landmark carry the same texture.",
 )
 @click.option(
+    "--weak-texture",
+    is_flag=True,
+    help="Stress: the landmark is plain paint with a few textured patches per face.",
+)
+@click.option(
+    "--dusk",
+    is_flag=True,
+    help="Stress: the light falls to 25% over the orbit video and the sensor noise rises "
+    "(+3 grey levels at the end), as an auto-gain camera at dusk.",
+)
+@click.option(
     "--pole",
     is_flag=True,
     help="Stress: a textured pole (8 cm wide) stands between the orbit and the landmark at "
@@ -163,6 +174,13 @@ def _write_jpeg(path: Path, img: np.ndarray, quality: int) -> None:
     type=FiniteFloat(min=0.8),
     default=default_of(synth.OrbitPath, "radius_m"),
     help="Orbit video circle radius (m); the keyframes keep --radius.",
+)
+@shown(
+    "--video-height",
+    type=FiniteFloat(min=0.1, max=20.0),
+    default=default_of(synth.OrbitPath, "height_m"),
+    help="Orbit video camera height (m; it looks at the landmark from there): 2.2 with the "
+    "default radius is a drone's view from 50 deg above.",
 )
 @shown(
     "--aa",
@@ -223,8 +241,11 @@ def synth_cmd(
     exposure,
     floor_tiles,
     lookalike,
+    weak_texture,
+    dusk,
     pole,
     video_radius,
+    video_height,
     look_away,
     turns,
     aa,
@@ -260,7 +281,9 @@ def synth_cmd(
         _calibration(out / "calibration", cam, cols, rows, square, calib_views, seed, noise,
                      jpeg_quality, jobs)  # fmt: skip
     if "keyframes" in parts or "orbit" in parts:
-        scene = synth.landmark_scene(seed, floor_tile_m=floor_tiles, lookalike=lookalike)
+        scene = synth.landmark_scene(
+            seed, floor_tile_m=floor_tiles, lookalike=lookalike, weak=weak_texture
+        )
         if ground_board:
             scene = _with_ground_board(scene, out)
         renderer = Renderer(scene, cam, aa=aa)
@@ -272,9 +295,14 @@ def synth_cmd(
             if occluders:
                 renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam, aa=aa)
             path = synth.OrbitPath(
-                duration_s=duration, radius_m=video_radius, turns=turns, look_away_s=away_s
+                duration_s=duration,
+                radius_m=video_radius,
+                height_m=video_height,
+                turns=turns,
+                look_away_s=away_s,
             )
-            _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders)
+            _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders,
+                   dusk=dusk)  # fmt: skip
     ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
 
 
@@ -317,7 +345,8 @@ def _with_ground_board(scene, out: Path):
 # options that shape the default scene; a --random scene draws all of them itself
 SCENE_OPTIONS = (
     "seed", "camera_path", "width", "height", "keyframe_step", "heights", "radius", "noise",
-    "motion_blur", "ground_board", "floor_tiles", "lookalike", "pole", "video_radius",
+    "motion_blur", "ground_board", "floor_tiles", "lookalike", "weak_texture", "dusk", "pole",
+    "video_radius", "video_height",
     "turns", "look_away", "jpeg_quality",
 )  # fmt: skip
 
@@ -425,10 +454,11 @@ def _keyframe_views(folder, renderer, views, seed, noise, quality, jobs):
 
 def _orbit(
     out: Path, renderer, path, fps, seed, noise, blur, exposure, jobs, occluders, samples=None,
-    gain=None,
+    gain=None, dusk=False,
 ):  # fmt: skip
     """The video along `path`; `samples` are the landmark's surface points (visibility),
-    `gain(t)` the lighting's drift (a factor on every pixel)."""
+    `gain(t)` the lighting's drift (a factor on every pixel); `dusk` dims the light to 25%
+    over the video and adds noise as it falls."""
     cam = renderer.camera
     n = int(round(path.duration_s * fps))
     times = np.arange(n) / fps
@@ -446,9 +476,11 @@ def _orbit(
         if not writer.isOpened():
             raise OutputError("this OpenCV build cannot write mp4 (mp4v) video")
         frames = _render_all(renderer, pose_lists, noise, seed, "orbit", jobs, "orbit video")
-        for t, img in zip(times, frames, strict=True):
+        for i, (t, img) in enumerate(zip(times, frames, strict=True)):
             if gain is not None:
                 img = cv2.convertScaleAbs(img, alpha=gain(t))
+            if dusk:
+                img = synth.dusk_frame(img, t / max(path.duration_s, 1e-9), seed, i)
             writer.write(img)
         writer.release()
     write_trajectory(
