@@ -307,7 +307,7 @@ def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, m
     would see the same view, 200 ms more a frame on the 4 m orbit). A `lost` guided pose
     (the prediction was off) still goes on to the whole frame and relocalisation."""
     from mirage_cli.records import FrameRecord, Status
-    from mirage_cli.tracking import schedule, tracker
+    from mirage_cli.tracking import schedule
 
     gray = np.zeros(model.camera.size[::-1], np.uint8)
     feats = (np.full((50, 2), 100, np.float32), np.zeros((50, 128), np.float32))
@@ -317,8 +317,7 @@ def test_an_uncertain_guided_pose_ends_the_frame_a_lost_one_relocalises(model, m
     ):
         shapes, reloc = [], []
         fake = lambda img, det, s=shapes: s.append(img.shape) or feats  # noqa: E731
-        monkeypatch.setattr(tracker, "detect", fake)  # the whole frame
-        monkeypatch.setattr(schedule, "detect", fake)  # a box, the probe
+        monkeypatch.setattr(schedule, "detect", fake)  # a box, the probe, the whole frame
         monkeypatch.setattr(Tracker, "_guided", lambda *a, g=guided: FrameRecord(g, mode="detect"))
         monkeypatch.setattr(
             Tracker, "_relocalise", lambda *a, r=reloc: r.append(1) or FrameRecord(Status.LOST)
@@ -336,7 +335,7 @@ def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeyp
     whole frame only when it finds the landmark. Lost for more than 12 frames (a
     look-away), the whole frame every 6th frame and the probe every other frame."""
     from mirage_cli.records import FrameRecord, Status
-    from mirage_cli.tracking import schedule, tracker
+    from mirage_cli.tracking import schedule
 
     gray = np.zeros(model.camera.size[::-1], np.uint8)
     feats = (np.full((50, 2), 100, np.float32), np.zeros((50, 128), np.float32))
@@ -360,8 +359,7 @@ def test_while_lost_the_whole_frame_is_searched_every_third_frame(model, monkeyp
             lambda img, det, s=sizes: s.append("full" if img.shape == gray.shape else "half")
             or feats
         )
-        monkeypatch.setattr(tracker, "detect", fake)  # the whole frame
-        monkeypatch.setattr(schedule, "detect", fake)  # the probe
+        monkeypatch.setattr(schedule, "detect", fake)  # the probe, the whole frame
         monkeypatch.setattr(
             Tracker, "_relocalise", lambda *a, r=relocs: FrameRecord(next(r), mode="relocalise")
         )

@@ -263,13 +263,7 @@ def synth_cmd(
         _refuse_scene_options()
         _random_scene(outdir, family, random_seed, parts, duration, fps, exposure, jobs, aa)
         return
-    away_s = _parse_look_away(look_away, duration)  # before any rendering
-    try:
-        cols, rows = parse_board(None, None, board)
-    except click.BadParameter as e:
-        e.param_hint = "'--board'"
-        raise
-    hs = float_list(heights, "--heights")
+    away_s, (cols, rows), hs = _scene_values(look_away, duration, board, heights)
     cam = _camera(camera_path, width, height)
     if camera_path:
         refuse_overwrite({"OUTDIR": Path(outdir) / "camera_truth.yaml"}, {"--camera": camera_path})
@@ -291,19 +285,34 @@ def synth_cmd(
             _keyframes(out / "keyframes", renderer, keyframe_step, radius, hs, seed, noise,
                        jpeg_quality, jobs)  # fmt: skip
         if "orbit" in parts:
-            occluders = [synth.pole(seed)] if pole else []
-            if occluders:
-                renderer = Renderer(synth.add_occluder(scene, occluders[0]), cam, aa=aa)
             path = synth.OrbitPath(
-                duration_s=duration,
-                radius_m=video_radius,
-                height_m=video_height,
-                turns=turns,
+                duration_s=duration, radius_m=video_radius, height_m=video_height, turns=turns,
                 look_away_s=away_s,
-            )
-            _orbit(out, renderer, path, fps, seed, noise, motion_blur, exposure, jobs, occluders,
-                   dusk=dusk)  # fmt: skip
+            )  # fmt: skip
+            _landmark_orbit(out, scene, cam, aa, path, pole, fps, seed, noise, motion_blur,
+                            exposure, jobs, dusk)  # fmt: skip
     ui.echo(f"synth: wrote {', '.join(parts)} to {out} in {time.perf_counter() - t0:.1f} s")
+
+
+def _scene_values(look_away, duration, board, heights):
+    """The default scene's options that need parsing, checked before any rendering."""
+    away_s = _parse_look_away(look_away, duration)
+    try:
+        board_size = parse_board(None, None, board)
+    except click.BadParameter as e:
+        e.param_hint = "'--board'"
+        raise
+    return away_s, board_size, float_list(heights, "--heights")
+
+
+def _landmark_orbit(out, scene, cam, aa, path, pole, fps, seed, noise, blur, exposure, jobs,
+                    dusk) -> None:  # fmt: skip
+    """The default landmark's orbit video, with the pole in front of it if asked."""
+    occluders = [synth.pole(seed)] if pole else []
+    if occluders:
+        scene = synth.add_occluder(scene, occluders[0])
+    _orbit(out, Renderer(scene, cam, aa=aa), path, fps, seed, noise, blur, exposure, jobs,
+           occluders, dusk=dusk)  # fmt: skip
 
 
 def _parts(only: str) -> list[str]:

@@ -20,13 +20,15 @@ def _local_means(gray: np.ndarray, px: np.ndarray) -> np.ndarray:
     ij = np.rint(px).astype(np.int64)
     inside = (ij[:, 0] >= 3) & (ij[:, 0] < w - 3) & (ij[:, 1] >= 3) & (ij[:, 1] < h - 3)
     out = np.zeros(len(px))
-    if inside.any():
+    if inside.any():  # the 49 pixels of each point gathered (not a blur of their whole box)
         ii = ij[inside]
-        x0, y0 = ii.min(axis=0) - 3
-        x1, y1 = ii.max(axis=0) + 4
-        area = cv2.blur(gray[y0:y1, x0:x1], (7, 7), borderType=cv2.BORDER_REPLICATE)
-        out[inside] = area[ii[:, 1] - y0, ii[:, 0] - x0]
+        xs = ii[:, 0, None] + _OFFSETS[None, :, 0]
+        ys = ii[:, 1, None] + _OFFSETS[None, :, 1]
+        out[inside] = gray[ys, xs].mean(axis=1)
     return out
+
+
+_OFFSETS = np.stack(np.meshgrid(np.arange(-3, 4), np.arange(-3, 4)), axis=-1).reshape(-1, 2)
 
 
 def _deviation(res: FrameRecord, pred: Pose) -> float:
@@ -64,8 +66,12 @@ class FlowTracking:
             if tracked is None:
                 return None
         p1, good = tracked
-        if good.sum() < max(self.settings.min_flow_points, self.settings.flow_keep * self.anchor_n):
-            return None  # the flow has weakened: detect afresh
+        # the flow has weakened: detect afresh. A detection with fewer points than
+        # `min_flow_points` (a small view from above: 20-29 inliers) was trusted with them,
+        # so its flow needs all of them, not more than it had
+        n = self.anchor_n
+        if good.sum() < max(min(self.settings.min_flow_points, n), self.settings.flow_keep * n):
+            return None
         X, uv = self.track_X[good], p1[good]
         est = solve_pose(
             X,
@@ -95,16 +101,34 @@ class FlowTracking:
         return res
 
     def _lucas_kanade(self, gray, a0, guess, lk) -> tuple[np.ndarray, np.ndarray] | None:
-        """The anchor's points in `gray` (N,2) and which of them flowed well (both ways)."""
+        """The anchor's points in `gray` (N,2) and which of them flowed well (both ways).
+
+        Lucas-Kanade's cost is its image pyramids and gradients, over the whole image
+        passed: both images are cut to where the points are (and the search's reach), and
+        when the features were detected on a shrunk image (`px_scale`, a video sharper
+        than the keyframes) the flow runs on the pyramid level that matches it: a 1080p
+        frame against a 640x480 model flows on a half-size cut, as precise as the
+        features it follows."""
+        levels = int(np.floor(np.log2(max(self.px_scale, 1.0)) + 1e-9))
+        f = 2**levels
+        cut = _flow_region(gray.shape, (self.anchor_px, guess), lk, f)
+        if cut is None:
+            return None
+        (x0, y0, x1, y1), off = cut, np.float32(cut[:2])
+        A, B = self.anchor_gray[y0:y1, x0:x1], gray[y0:y1, x0:x1]
+        for _ in range(levels):
+            A, B = cv2.pyrDown(A), cv2.pyrDown(B)
+        a = (a0 - off) / np.float32(f)
         try:  # from the anchor image: the error does not add up from frame to frame
             p1, st, _ = cv2.calcOpticalFlowPyrLK(
-                self.anchor_gray, gray, a0, guess.reshape(-1, 1, 2).copy(), **lk
+                A, B, a, ((guess - off) / np.float32(f)).reshape(-1, 1, 2), **lk
             )
-            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(gray, self.anchor_gray, p1, a0.copy(), **lk)
+            p0r, st2, _ = cv2.calcOpticalFlowPyrLK(B, A, p1, a.copy(), **lk)
         except cv2.error:
             return None
-        p1, p0r = p1.reshape(-1, 2), p0r.reshape(-1, 2)
-        fb = np.linalg.norm(p0r - self.anchor_px, axis=1)
+        # back to the frame's pixels; the forward-backward check in the flowed image's
+        fb = np.linalg.norm(p0r.reshape(-1, 2) - a.reshape(-1, 2), axis=1)
+        p1 = p1.reshape(-1, 2) * np.float32(f) + off
         h, w = gray.shape[:2]
         good = (
             (st.ravel() == 1) & (st2.ravel() == 1) & (fb < self.settings.flow_fb_px)
@@ -120,3 +144,20 @@ class FlowTracking:
         then, now = self._anchor_level[good], _local_means(gray, p1[good])
         ok = (now > 8) & (then > 8)  # dark points say little about the gain
         return float(np.median(then[ok] / now[ok])) if ok.sum() >= 10 else 1.0
+
+
+def _flow_region(shape, points, lk, f: int) -> tuple[int, int, int, int] | None:
+    """The box (x0, y0, x1, y1) both images are cut to before Lucas-Kanade: every point
+    (anchor and guess) with the search's reach around it (the window at each pyramid
+    level), its corner on the pyramid's grid so that the cut's pyramid is the frame's."""
+    h, w = shape[:2]
+    pts = np.vstack(points)
+    if not np.isfinite(pts).all():
+        return None
+    grid = f * 2 ** lk["maxLevel"]
+    reach = 2 * (lk["winSize"][0] + 2) * grid
+    x0, y0 = (np.maximum(np.floor(pts.min(axis=0) - reach), 0) // grid * grid).astype(int)
+    x1, y1 = np.minimum(np.ceil(pts.max(axis=0) + reach) + 1, (w, h)).astype(int)
+    if x1 - x0 < 2 * grid or y1 - y0 < 2 * grid:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)

@@ -79,6 +79,7 @@ class Relocalisation:
 
     def _probe(self, gray: np.ndarray) -> FrameRecord:
         kps, desc = self._features("probe", self._probe_features, gray)
+        self._at_scale(self.full_scale)  # (a half-size search: it only says whether to go on)
         if desc is None or len(kps) < self.settings.min_inliers:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.FEW_FEATURES)
         return self._relocalise(kps, desc)

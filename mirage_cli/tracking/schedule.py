@@ -89,10 +89,9 @@ class DetectionSchedule:
                     box = self._model_box(self.prev_pose, gray.shape) or ()
                 if box:
                     self._start(frame_no, "lostbox", self._box_features, gray, box)
-                    self._pending[frame_no, "lostbox"].box = box
             kind = self._search(lost_run)
             if kind is not None and (frame_no, kind) not in self._pending:
-                fn = self._probe_features if kind == "probe" else detect
+                fn = self._probe_features if kind == "probe" else self._full_features
                 self._start(frame_no, kind, fn, gray)
 
     def _drop(self, *kinds: str) -> None:
@@ -104,7 +103,9 @@ class DetectionSchedule:
     def _start(self, frame_no: int, kind: str, fn, gray, *args) -> None:
         if self._bg_detector is None:
             self._bg_detector = make_detector(self.model.detector)
-        self._pending[frame_no, kind] = _worker().submit(fn, gray, *args, self._bg_detector)
+        job = _worker().submit(fn, gray, *args, self._bg_detector)
+        job.box = args[0] if args else None  # a box search: where (and at which scale)
+        self._pending[frame_no, kind] = job
 
     def _features(self, kind: str, fn, gray, *args):
         """This frame's features of that kind: detected ahead when they were, else now."""
@@ -124,15 +125,18 @@ class DetectionSchedule:
         return None if long and lost_run % 2 else "probe"
 
     def _probe_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
-        small = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-        kps, desc = detect(small, detector)
-        return kps * np.float32(2) + np.float32(0.5), desc
+        return _scaled_detect(gray, 2 * self.full_scale, detector)
+
+    def _full_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
+        """The whole frame, at the keyframes' scale when the video's camera is sharper than
+        the model's (a 1080p video against a 640x480 model: a fifth of the pixels)."""
+        return _scaled_detect(gray, self.full_scale, detector)
 
     def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
         """Features in the pixel box (None: the whole frame): shrunk first when the landmark
         looks larger than from its keyframes, else upsampled when the box is small."""
         if box is None:
-            return detect(gray, detector)
+            return self._full_features(gray, detector)
         x0, y0, x1, y1, shrink = box
         crop = gray[y0:y1, x0:x1]
         up = 1.0
@@ -144,3 +148,13 @@ class DetectionSchedule:
             crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
         kps, desc = detect(crop, detector)
         return kps / np.float32(up) + np.array([x0, y0], np.float32), desc
+
+
+def _scaled_detect(gray: np.ndarray, scale: float, detector) -> tuple[np.ndarray, np.ndarray]:
+    """Features of `gray` shrunk by `scale` (>= 1), in `gray`'s pixels."""
+    if scale <= 1:
+        return detect(gray, detector)
+    small = cv2.resize(gray, None, fx=1 / scale, fy=1 / scale, interpolation=cv2.INTER_AREA)
+    kps, desc = detect(small, detector)
+    # pixel centres: (u + 0.5) * scale - 0.5
+    return kps * np.float32(scale) + np.float32((scale - 1) / 2), desc

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..solver import RansacOptions, RefineOptions
 
@@ -65,3 +65,25 @@ class TrackSettings:
     max_sigma_pos_m: float = 0.10  # a larger 1-sigma uncertainty is `uncertain`, not ok
     max_sigma_rot_deg: float = 1.5
     max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance
+
+    def at_scale(self, f: float) -> TrackSettings:
+        """These settings for features detected on an image shrunk by `f` (>= 1; a video
+        sharper than the model's keyframes): the limits that measure a keypoint's or a
+        model point's error in pixels grow with the pixels (a model point 0.5 px off in
+        its keyframes is 1.1 px off in a 1080p frame against them), and so does the
+        prediction's reach (the radius of guided matching)."""
+        if f <= 1:
+            return self
+        r = self.refine
+        return replace(
+            self,
+            max_ok_rmse_px=self.max_ok_rmse_px * f,
+            flow_max_rmse_px=self.flow_max_rmse_px * f,
+            guided_radius_px=self.guided_radius_px * f,
+            ransac=replace(self.ransac, threshold_px=self.ransac.threshold_px * f),
+            refine=replace(
+                r,
+                huber_px=r.huber_px * f,
+                reject_px=None if r.reject_px is None else r.reject_px * f,
+            ),
+        )

@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import signals
 from ..camera import Camera
-from ..features import detect, guided_match, make_detector, to_gray
+from ..features import guided_match, make_detector, to_gray
 from ..frames import Frame
 from ..model import LandmarkModel, ground_points, point_twins
 from ..pose import Pose
@@ -39,7 +39,7 @@ from .flow import FlowTracking, _deviation
 from .gating import PoseGate
 from .relocalise import Relocalisation
 from .schedule import DetectionSchedule
-from .search import GuidedSearch, _median_depth
+from .search import SHRINK_MARGIN, GuidedSearch, _median_depth
 from .settings import TrackSettings
 
 
@@ -71,6 +71,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
 
     def __init__(self, model: LandmarkModel, camera: Camera, settings: TrackSettings):
         self.model, self.camera, self.settings = model, camera, settings
+        self.base_settings = settings  # `settings` is it at the current features' scale
         self.detector = make_detector(model.detector)
         self.prev_pose: Pose | None = None
         self.velocity: Pose | None = None  # T_k @ T_{k-1}^-1 of the last two ok frames
@@ -114,6 +115,14 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             [_median_depth(kf.pose, X) for kf, X in zip(kfs, self._kf_points, strict=True)]
         )
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
+        # a camera sharper than the model's: whole frames are searched at the keyframes'
+        # scale (the landmark at the keyframes' distance looks as large as in them)
+        self.full_scale = (
+            round(self._focal_ratio / SHRINK_MARGIN, 2)
+            if self._focal_ratio >= settings.shrink_above
+            else 1.0
+        )
+        self.px_scale = 1.0  # the current features' pixel size, in this frame's pixels
         # how high each keyframe looks at the landmark (when to match its squashed views)
         land = P[self.on_landmark] if self.on_landmark.any() else P
         self._target = land.mean(axis=0) if len(land) else np.zeros(3)
@@ -187,6 +196,12 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self.hint = self._uncertain_pose if res.status == Status.UNCERTAIN else None
         return res
 
+    def _at_scale(self, f: float) -> None:
+        """Features detected on an image shrunk by `f`: the pixel limits follow (until the
+        next detection: flowed points keep their detection's)."""
+        if f != self.px_scale:
+            self.px_scale, self.settings = f, self.base_settings.at_scale(f)
+
     def _predicted(self, frames: int = 1) -> Pose | None:
         """The pose `frames` frames after the last one, at constant velocity."""
         if self.prev_pose is None:
@@ -208,10 +223,12 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             early = self._pending.pop((self._frame_no, "lostbox"), None)
             early = early if early is not None and early.box == box else None
         if early is not None or box is not None:  # tracking: where the model is predicted
+            used = early.box if early is not None else box  # (None: the whole frame)
             if early is not None:
                 kps, desc = early.result()
             else:
                 kps, desc = self._box_features(gray, box, self.detector)
+            self._at_scale(max(1.0, used[4]) if used else self.full_scale)
             if len(kps) >= self.settings.min_track_inliers:
                 res = self._guided(kps, desc, pred)
                 # an uncertain pose found the landmark where predicted and says its view
@@ -226,7 +243,8 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             probe = self._probe(gray)
             if probe.status == Status.LOST:
                 return probe
-        kps, desc = self._features("full", detect, gray)
+        kps, desc = self._features("full", self._full_features, gray)
+        self._at_scale(self.full_scale)
         if desc is None or len(kps) < self.settings.min_inliers:
             return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_FEATURES)
         if pred is not None and box is None:
