@@ -42,6 +42,10 @@ class DescriptorIndex:
                 except cv2.error:  # another FLANN's format: build it again
                     self.loaded = False
         if not self.loaded:
+            # FLANN draws its trees from OpenCV's RNG: from its initial state (a new
+            # process's, 0), the trees and every search depend on the data alone (a build
+            # and a track of one model find the same twins); RANSAC seeds it anew anyway
+            cv2.setRNGSeed(0)
             self.flann = cv2.flann_Index(self.data, FLANN_PARAMS)
 
     def to_bytes(self) -> np.ndarray:
