@@ -636,6 +636,9 @@ def build_model(
         with ThreadPoolExecutor(workers) as pool:
             for kf, t in zip(keyframes, pool.map(tilted, range(len(views))), strict=True):
                 kf.tilted = t
+    for kf in keyframes:
+        kf.compact()
+    del descs
     meta = {
         "spacing_deg": settings.spacing_deg,
         "roi": {"kind": roi.kind, "values": list(roi.values), "reason": roi.reason},

@@ -59,6 +59,18 @@ class Keyframe:
     def n_linked(self) -> int:
         return int(np.count_nonzero(self.point_ids >= 0))
 
+    def compact(self) -> Keyframe:
+        """Hold the descriptors (and the squashed views') in their on-disk form, SIFT's as
+        bytes (a quarter of the memory: 110 MB less for 144 keyframes), cast back on use."""
+        d = self.__dict__["_descriptors"]
+        if d.dtype != np.uint8 and _bytes_exactly(d):
+            self.dtype = self.dtype or d.dtype
+            self.descriptors = d.astype(np.uint8)
+        if self.tilted is not None and self.tilted[1].dtype != np.uint8:
+            k, t, p = self.tilted
+            self.tilted = (k, t.astype(np.uint8) if _bytes_exactly(t) else t, p)
+        return self
+
 
 def _descriptors_get(kf: Keyframe) -> np.ndarray:
     d = kf.__dict__["_descriptors"]
@@ -90,24 +102,31 @@ class KeyframeRecognition:
 
     def _linked_rows(self, tilted: bool = False):
         """Every keyframe's linked descriptors (`tilted`: and those of its squashed views),
-        with the keyframe and the point of each row."""
-        descs, owner, pids = [], [], []
-        for i, kf in enumerate(self.keyframes):
-            _, d, p = kf.linked()
+        with the keyframe and the point of each row; filled into one array (the tilted
+        rows of 144 keyframes are 53 MB as float)."""
+        parts = []
+        for kf in self.keyframes:
+            m = kf.point_ids >= 0
+            part = [(kf.__dict__["_descriptors"], m, kf.point_ids[m])]
             if tilted and kf.tilted is not None and len(kf.tilted[2]):
-                d = np.concatenate([d, kf.tilted[1].astype(d.dtype, copy=False)])
-                p = np.concatenate([p, kf.tilted[2]])
-            descs.append(d)
-            owner.append(np.full(len(d), i, np.int32))
-            pids.append(p)
-        if not descs:
-            return np.zeros((0, 128), self.detector.spec.dtype), *(np.zeros(0, np.int32),) * 2
-        return np.concatenate(descs), np.concatenate(owner), np.concatenate(pids)
+                part.append((kf.tilted[1], slice(None), kf.tilted[2]))
+            parts.append(part)
+        dim = self.keyframes[0].__dict__["_descriptors"].shape[1] if self.keyframes else 128
+        n = sum(len(p) for part in parts for _, _, p in part)
+        D = np.empty((n, dim), self.detector.spec.dtype)
+        owner, pids, at = np.empty(n, np.int32), np.empty(n, np.int32), 0
+        for i, part in enumerate(parts):
+            for d, rows, p in part:
+                D[at : at + len(p)] = d[rows]  # cast to the detector's dtype as copied
+                owner[at : at + len(p)], pids[at : at + len(p)] = i, p
+                at += len(p)
+        return D, owner, pids
 
     def _build_index(self, tilted: bool = False, stored: np.ndarray | None = None):
         """One search over all keyframes' linked descriptors (`tilted`: and those of their
         squashed views), with the owner and point of each row; `stored`: the model file's
-        KD-trees of it (`DescriptorIndex`)."""
+        KD-trees of it (`DescriptorIndex`), or what reads them (`_Deferred`)."""
+        stored = stored() if callable(stored) else stored
         alld, owner, pids = self._linked_rows(tilted)
         hamming = self.detector.spec.norm == cv2.NORM_HAMMING
         index = (DescriptorIndex(alld, hamming, stored) if len(alld) else None, owner, pids)
@@ -300,24 +319,23 @@ class LandmarkModel(KeyframeRecognition):
             # `with`, an interrupt leaves the handle open and close() then raises a
             # ValueError that hides the interrupt; one entry takes milliseconds to write
             with zf as z:
-                entries = {"manifest.json": json.dumps(manifest, indent=1).encode()}
-                for k, a in arrays.items():
+                with signals.deferred():
+                    z.writestr("manifest.json", json.dumps(manifest, indent=1).encode())
+                for k in list(arrays):  # one array's bytes at a time (memory)
                     buf = io.BytesIO()
-                    np.save(buf, a, allow_pickle=False)
-                    entries[f"{k}.npy"] = buf.getvalue()
-                for name, data in entries.items():
-                    kind = zipfile.ZIP_STORED if name in _MAPPED else zipfile.ZIP_DEFLATED
+                    np.save(buf, arrays.pop(k), allow_pickle=False)
+                    kind = zipfile.ZIP_STORED if f"{k}.npy" in _MAPPED else zipfile.ZIP_DEFLATED
                     with signals.deferred():
-                        z.writestr(name, data, compress_type=kind)
+                        z.writestr(f"{k}.npy", buf.getbuffer(), compress_type=kind)
+                    del buf
 
     def _arrays(self) -> dict[str, np.ndarray]:
         kfs = self.keyframes
         counts = np.array([len(kf.keypoints) for kf in kfs], np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        desc = [kf.descriptors for kf in kfs]
+        desc = [kf.__dict__["_descriptors"] for kf in kfs]  # as held: a loaded one's bytes
         dim = desc[0].shape[1] if desc else 128
-        all_desc = np.concatenate(desc) if desc else np.zeros((0, dim), np.float32)
-        all_desc = _stored_descriptors(all_desc)
+        all_desc = _stored_descriptors(desc, dim)
         thumbs = [kf.thumbnail for kf in kfs]
         th_shapes = np.array([t.shape[:2] for t in thumbs], np.int64).reshape(-1, 2)
         obs = self.point_observations
@@ -365,7 +383,7 @@ class LandmarkModel(KeyframeRecognition):
             for kf in self.keyframes
         ]
         counts = [len(p[2]) for p in parts]
-        desc = _stored_descriptors(np.concatenate([np.asarray(p[1]) for p in parts]))
+        desc = _stored_descriptors([np.asarray(p[1]) for p in parts], dim)
         return {
             "tilt_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
             "tilt_keypoints": np.concatenate([p[0] for p in parts]).astype(np.float32),
@@ -392,8 +410,12 @@ class LandmarkModel(KeyframeRecognition):
                         f"model {p} has format version {version}, this mirage reads version "
                         f"{FORMAT_VERSION}; {hint}"
                     )
-                arrays = {name: _read_array(z, p, name, info, hint) for name, info in
-                          manifest["arrays"].items()}  # fmt: skip
+                arrays = {
+                    name: _Deferred(p, name, info, hint)
+                    if name in _DEFERRED
+                    else _read_array(z, p, name, info, hint)
+                    for name, info in manifest["arrays"].items()
+                }
         except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError) as e:
             raise InputError(f"model {p} is corrupt or truncated ({e}); {hint}") from None
         except (KeyError, TypeError) as e:
@@ -515,13 +537,22 @@ def ground_points(
     return on if r_on > 1.5 * r_off else ground
 
 
-def _stored_descriptors(desc: np.ndarray) -> np.ndarray:
-    """SIFT descriptors are integers 0..255 held as float: bytes on disk, lossless (`load`
-    casts back to the detector's dtype); RootSIFT's are not integers and stay float."""
-    if desc.dtype != np.uint8 and np.array_equal(desc, np.round(desc)):
-        if desc.size == 0 or (desc.min() >= 0 and desc.max() <= 255):
-            return desc.astype(np.uint8)
-    return desc
+def _stored_descriptors(parts: list[np.ndarray], dim: int) -> np.ndarray:
+    """The parts' descriptors, concatenated in their on-disk form: SIFT's are integers
+    0..255 held as float, bytes on disk, lossless (`load` casts back to the detector's
+    dtype); RootSIFT's are not integers and stay float. Part by part: no float copy of all
+    (147 MB for 144 keyframes)."""
+    if not parts:
+        return np.zeros((0, dim), np.float32)
+    if all(_bytes_exactly(p) for p in parts):
+        return np.concatenate([p.astype(np.uint8, copy=False) for p in parts])
+    return np.concatenate(parts)
+
+
+def _bytes_exactly(d: np.ndarray) -> bool:
+    if d.dtype == np.uint8 or d.size == 0:
+        return True
+    return bool(np.array_equal(d, np.round(d)) and d.min() >= 0 and d.max() <= 255)
 
 
 def observations_from_keyframes(keyframes: list[Keyframe]) -> dict[str, np.ndarray]:
@@ -578,6 +609,10 @@ def _azimuth_steps(azimuths_deg) -> tuple[np.ndarray, np.ndarray]:
 # without them (made before) gets them built when first needed
 _TABLES = ("twins", "ground", "recognition_index", "tilted_recognition_index")
 
+# read when first needed: the tilted views' index serves only a relocalisation that found
+# nothing with the keyframes as they are (20 MB inflated for 144 keyframes)
+_DEFERRED = {"tilted_recognition_index"}
+
 # arrays stored uncompressed and memory-mapped at load: a keyframe's descriptors are read
 # when it is first matched (SIFT's bytes compress to 80%: not worth inflating at every load)
 _MAPPED = {"descriptors.npy", "tilt_descriptors.npy"}
@@ -596,6 +631,21 @@ def _read_array(z: zipfile.ZipFile, path, name: str, info: dict, hint: str) -> n
     if list(a.shape) != info["shape"] or _sha(a) != info["sha256"]:
         raise InputError(f"model {path} is corrupt ({name} checksum); {hint}")
     return a
+
+
+class _Deferred:
+    """An array of a model file read when first called for (None if the file no longer
+    holds it as it was: what it indexes is then built again)."""
+
+    def __init__(self, path, name: str, info: dict, hint: str):
+        self.path, self.name, self.info, self.hint = path, name, info, hint
+
+    def __call__(self) -> np.ndarray | None:
+        try:
+            with zipfile.ZipFile(self.path) as z:
+                return _read_array(z, self.path, self.name, self.info, self.hint)
+        except (InputError, zipfile.BadZipFile, OSError, ValueError, EOFError):
+            return None
 
 
 def _mapped(z: zipfile.ZipFile, zi: zipfile.ZipInfo, path) -> np.ndarray | None:
