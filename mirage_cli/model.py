@@ -125,11 +125,11 @@ class KeyframeRecognition:
     def _build_index(self, tilted: bool = False, stored: np.ndarray | None = None):
         """One search over all keyframes' linked descriptors (`tilted`: and those of their
         squashed views), with the owner and point of each row; `stored`: the model file's
-        KD-trees of it (`DescriptorIndex`), or what reads them (`_Deferred`)."""
-        stored = stored() if callable(stored) else stored
+        KD-trees of it (`DescriptorIndex`)."""
         alld, owner, pids = self._linked_rows(tilted)
         hamming = self.detector.spec.norm == cv2.NORM_HAMMING
-        index = (DescriptorIndex(alld, hamming, stored) if len(alld) else None, owner, pids)
+        search = DescriptorIndex(alld, hamming, stored, seed=None) if len(alld) else None
+        index = (search, owner, pids)
         if tilted:
             self._tilted_index = index
         else:
@@ -176,9 +176,10 @@ class KeyframeRecognition:
         if len(descriptors) == 0 or not self.keyframes:
             return []
         index = self._tilted_index if tilted else self._index
-        if index is None:
-            stored = self.tables.get("tilted_recognition_index" if tilted else "recognition_index")
-            index = self._build_index(tilted, stored)
+        if index is None:  # (the tilted views' index: built when a relocalisation needs it)
+            index = self._build_index(
+                tilted, None if tilted else self.tables.get("recognition_index")
+            )
         search, owner, pids = index
         if search is None:
             return []
@@ -363,15 +364,10 @@ class LandmarkModel(KeyframeRecognition):
     def _table_arrays(self) -> dict[str, np.ndarray]:
         """What tracking needs before its first frame, found once here rather than at every
         `mirage track` start: the twins and ground tables and the recognition KD-trees."""
-        self.prepare_recognition()
         tables = {"twins": self.twins().astype(np.uint8), "ground": self.ground().astype(np.uint8)}
-        for name, tilted in (("recognition_index", False), ("tilted_recognition_index", True)):
-            if tilted and not self.has_tilted:
-                continue
-            index = self._tilted_index if tilted else self._index
-            if index is None:
-                index = self._build_index(tilted, self.tables.get(name))
-            tables[name] = index[0].to_bytes() if index[0] else np.zeros(0, np.uint8)
+        self.prepare_recognition()  # after the twins: the trees `track` built from them
+        search = self._index[0]
+        tables["recognition_index"] = search.to_bytes() if search else np.zeros(0, np.uint8)
         return tables
 
     def _tilted_arrays(self, dim: int) -> dict[str, np.ndarray]:
@@ -411,9 +407,7 @@ class LandmarkModel(KeyframeRecognition):
                         f"{FORMAT_VERSION}; {hint}"
                     )
                 arrays = {
-                    name: _Deferred(p, name, info, hint)
-                    if name in _DEFERRED
-                    else _read_array(z, p, name, info, hint)
+                    name: _read_array(z, p, name, info, hint)
                     for name, info in manifest["arrays"].items()
                 }
         except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError) as e:
@@ -607,11 +601,7 @@ def _azimuth_steps(azimuths_deg) -> tuple[np.ndarray, np.ndarray]:
 
 # what a model file may hold besides its keyframes and points (`_table_arrays`); a file
 # without them (made before) gets them built when first needed
-_TABLES = ("twins", "ground", "recognition_index", "tilted_recognition_index")
-
-# read when first needed: the tilted views' index serves only a relocalisation that found
-# nothing with the keyframes as they are (20 MB inflated for 144 keyframes)
-_DEFERRED = {"tilted_recognition_index"}
+_TABLES = ("twins", "ground", "recognition_index")
 
 # arrays stored uncompressed and memory-mapped at load: a keyframe's descriptors are read
 # when it is first matched (SIFT's bytes compress to 80%: not worth inflating at every load)
@@ -631,21 +621,6 @@ def _read_array(z: zipfile.ZipFile, path, name: str, info: dict, hint: str) -> n
     if list(a.shape) != info["shape"] or _sha(a) != info["sha256"]:
         raise InputError(f"model {path} is corrupt ({name} checksum); {hint}")
     return a
-
-
-class _Deferred:
-    """An array of a model file read when first called for (None if the file no longer
-    holds it as it was: what it indexes is then built again)."""
-
-    def __init__(self, path, name: str, info: dict, hint: str):
-        self.path, self.name, self.info, self.hint = path, name, info, hint
-
-    def __call__(self) -> np.ndarray | None:
-        try:
-            with zipfile.ZipFile(self.path) as z:
-                return _read_array(z, self.path, self.name, self.info, self.hint)
-        except (InputError, zipfile.BadZipFile, OSError, ValueError, EOFError):
-            return None
 
 
 def _mapped(z: zipfile.ZipFile, zi: zipfile.ZipInfo, path) -> np.ndarray | None:

@@ -25,7 +25,13 @@ class DescriptorIndex:
     KD-trees for float descriptors, brute force for binary ones (`hamming`). `stored`: the
     trees as `to_bytes` wrote them (a model file's), used when they load; else built."""
 
-    def __init__(self, data: np.ndarray, hamming: bool = False, stored: np.ndarray | None = None):
+    def __init__(
+        self,
+        data: np.ndarray,
+        hamming: bool = False,
+        stored: np.ndarray | None = None,
+        seed: int | None = 0,
+    ):
         self.data = np.ascontiguousarray(data if hamming else data.astype(np.float32, copy=False))
         self.hamming = hamming
         self.loaded = False
@@ -42,10 +48,13 @@ class DescriptorIndex:
                 except cv2.error:  # another FLANN's format: build it again
                     self.loaded = False
         if not self.loaded:
-            # FLANN draws its trees from OpenCV's RNG: from its initial state (a new
-            # process's, 0), the trees and every search depend on the data alone (a build
-            # and a track of one model find the same twins); RANSAC seeds it anew anyway
-            cv2.setRNGSeed(0)
+            # FLANN draws its trees from OpenCV's RNG: from a `seed` (0: a new process's
+            # state) the trees and every search depend on the data alone (a build and a
+            # track of one model find the same twins); None: go on from its state (the
+            # recognition trees after the twins', as `track` made them before they were
+            # stored); RANSAC seeds it anew anyway
+            if seed is not None:
+                cv2.setRNGSeed(seed)
             self.flann = cv2.flann_Index(self.data, FLANN_PARAMS)
 
     def to_bytes(self) -> np.ndarray:

@@ -105,7 +105,7 @@ def test_model_file_holds_the_tables_tracking_needs(built, tmp_path):
     build-model, and read back, not rebuilt at each start; they equal what a model file
     without them gets built at load (issue 31: 5 s of a 144-keyframe model's start)."""
     model = LandmarkModel.load(built[0])
-    assert {"twins", "ground", "recognition_index", "tilted_recognition_index"} <= set(model.tables)
+    assert set(model.tables) == {"twins", "ground", "recognition_index"}
     assert np.array_equal(model.twins(), point_twins(model))
     assert np.array_equal(model.ground(), ground_points(model.points))
     model.prepare_recognition()
@@ -119,7 +119,7 @@ def test_model_file_holds_the_tables_tracking_needs(built, tmp_path):
         q = model.keyframes[i].descriptors
         assert model.recognize(q)[0][0] == rebuilt.recognize(q)[0][0] == i
         assert model.recognize(q, tilted=True)[0][0] == i
-    assert model._tilted_index[0].loaded and not rebuilt._index[0].loaded
+    assert not rebuilt._index[0].loaded
     Tracker(rebuilt, rebuilt.camera, TrackSettings())  # a file of before still tracks
 
 
@@ -128,7 +128,7 @@ def _without_tables(path, out):
     with zipfile.ZipFile(path) as z:
         items = {n: z.read(n) for n in z.namelist()}
     manifest = json.loads(items.pop("manifest.json"))
-    for name in ("twins", "ground", "recognition_index", "tilted_recognition_index"):
+    for name in ("twins", "ground", "recognition_index"):
         del manifest["arrays"][name]
         del items[f"{name}.npy"]
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
