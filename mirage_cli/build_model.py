@@ -636,6 +636,9 @@ def build_model(
         with ThreadPoolExecutor(workers) as pool:
             for kf, t in zip(keyframes, pool.map(tilted, range(len(views))), strict=True):
                 kf.tilted = t
+    for kf in keyframes:
+        kf.compact()
+    del descs
     meta = {
         "spacing_deg": settings.spacing_deg,
         "roi": {"kind": roi.kind, "values": list(roi.values), "reason": roi.reason},
@@ -733,8 +736,10 @@ def _reproj(Xobs, kf, uv, poses, camera) -> np.ndarray:
     return err
 
 
-def _max_angle(X, kf, track, poses, n) -> np.ndarray:
-    """Largest angle (deg) between the viewing rays of each point (padded, vectorised)."""
+def _max_angle(X, kf, track, poses, n, chunk: int = 4_000_000) -> np.ndarray:
+    """Largest angle (deg) between the viewing rays of each point (padded, vectorised, in
+    groups of tracks holding `chunk` ray pairs at most: 144 keyframes' tracks are up to 60
+    views long, and all their pairs at once took 700 MB)."""
     C = np.array([p.center for p in poses])
     rays = C[kf] - X[track]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -745,8 +750,12 @@ def _max_angle(X, kf, track, poses, n) -> np.ndarray:
     L = int(slot.max()) + 1 if len(slot) else 1
     pad = np.full((n, L, 3), np.nan)
     pad[t_sorted, slot] = rays[order]
-    dots = np.einsum("tai,tbi->tab", pad, pad)
-    min_dot = np.nanmin(np.where(np.isnan(dots), 2.0, dots).reshape(n, -1), axis=1)
+    min_dot = np.empty(n)
+    step = max(1, chunk // (L * L))
+    for a in range(0, n, step):  # a few groups of tracks, each vectorised
+        dots = np.einsum("tai,tbi->tab", pad[a : a + step], pad[a : a + step])
+        np.nan_to_num(dots, copy=False, nan=2.0)
+        min_dot[a : a + step] = dots.reshape(len(dots), -1).min(axis=1)
     return np.degrees(np.arccos(np.clip(min_dot, -1, 1)))
 
 

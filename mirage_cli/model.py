@@ -20,8 +20,10 @@ import numpy as np
 from . import signals
 from .camera import Camera
 from .errors import InputError
-from .features import DetectorSettings, knn2, make_matcher
+from .features import DetectorSettings
 from .fileio import atomic_path, require_file
+from .model_index import DescriptorIndex
+from .model_index import point_twins as _twins
 from .pose import Pose
 
 FORMAT = "mirage-landmark-model"
@@ -42,15 +44,46 @@ class Keyframe:
     # features of the keyframe's views squashed as from higher up (tilt.py), each linked
     # to one of its points: (keypoints, descriptors, point ids); None: not made
     tilted: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    # the detector's descriptor dtype when `descriptors` was given in the file's form
+    # (SIFT's as bytes, memory-mapped): cast on first use, so a load reads none of them
+    dtype: object = field(default=None, repr=False, compare=False)
 
     def linked(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keypoints, descriptors, point_ids) of the features that have a 3D point."""
         m = self.point_ids >= 0
-        return self.keypoints[m], self.descriptors[m], self.point_ids[m]
+        d = self.__dict__["_descriptors"][m]  # the linked rows only, cast
+        d = d if self.dtype is None else d.astype(self.dtype, copy=False)
+        return self.keypoints[m], d, self.point_ids[m]
 
     @property
     def n_linked(self) -> int:
         return int(np.count_nonzero(self.point_ids >= 0))
+
+    def compact(self) -> Keyframe:
+        """Hold the descriptors (and the squashed views') in their on-disk form, SIFT's as
+        bytes (a quarter of the memory: 110 MB less for 144 keyframes), cast back on use."""
+        d = self.__dict__["_descriptors"]
+        if d.dtype != np.uint8 and _bytes_exactly(d):
+            self.dtype = self.dtype or d.dtype
+            self.descriptors = d.astype(np.uint8)
+        if self.tilted is not None and self.tilted[1].dtype != np.uint8:
+            k, t, p = self.tilted
+            self.tilted = (k, t.astype(np.uint8) if _bytes_exactly(t) else t, p)
+        return self
+
+
+def _descriptors_get(kf: Keyframe) -> np.ndarray:
+    d = kf.__dict__["_descriptors"]
+    if kf.dtype is not None and d.dtype != kf.dtype:
+        d = kf.__dict__["_descriptors"] = d.astype(kf.dtype)
+    return d
+
+
+def _descriptors_set(kf: Keyframe, value: np.ndarray) -> None:
+    kf.__dict__["_descriptors"] = value
+
+
+Keyframe.descriptors = property(_descriptors_get, _descriptors_set)  # after the dataclass
 
 
 def make_thumbnail(gray: np.ndarray, width: int = THUMB_WIDTH) -> np.ndarray:
@@ -67,35 +100,36 @@ class KeyframeRecognition:
     def has_tilted(self) -> bool:
         return any(kf.tilted is not None and len(kf.tilted[2]) for kf in self.keyframes)
 
-    def _build_index(self, tilted: bool = False):
-        """One matcher over all keyframes' linked descriptors (`tilted`: and those of their
-        squashed views), with the owner of each row."""
-        descs, owner, pids = [], [], []
-        for i, kf in enumerate(self.keyframes):
-            _, d, p = kf.linked()
+    def _linked_rows(self, tilted: bool = False):
+        """Every keyframe's linked descriptors (`tilted`: and those of its squashed views),
+        with the keyframe and the point of each row; filled into one array (the tilted
+        rows of 144 keyframes are 53 MB as float)."""
+        parts = []
+        for kf in self.keyframes:
+            m = kf.point_ids >= 0
+            part = [(kf.__dict__["_descriptors"], m, kf.point_ids[m])]
             if tilted and kf.tilted is not None and len(kf.tilted[2]):
-                d = np.concatenate([d, kf.tilted[1].astype(d.dtype, copy=False)])
-                p = np.concatenate([p, kf.tilted[2]])
-            descs.append(d)
-            owner.append(np.full(len(d), i, np.int32))
-            pids.append(p)
-        if not descs or sum(len(d) for d in descs) == 0:
-            index = (None, np.zeros(0, np.int32), np.zeros(0, np.int32))
-            if tilted:
-                self._tilted_index = index
-            else:
-                self._index = index
-            return index
-        alld = np.ascontiguousarray(np.concatenate(descs))
-        if self.detector.spec.norm == cv2.NORM_HAMMING:
-            matcher = make_matcher(self.detector)
-        else:
-            matcher = cv2.FlannBasedMatcher(
-                {"algorithm": 1, "trees": 4}, {"checks": 32}
-            )  # KD-tree: 20-50x faster than brute force over ~20k descriptors
-        matcher.add([alld])
-        matcher.train()
-        index = (matcher, np.concatenate(owner), np.concatenate(pids))
+                part.append((kf.tilted[1], slice(None), kf.tilted[2]))
+            parts.append(part)
+        dim = self.keyframes[0].__dict__["_descriptors"].shape[1] if self.keyframes else 128
+        n = sum(len(p) for part in parts for _, _, p in part)
+        D = np.empty((n, dim), self.detector.spec.dtype)
+        owner, pids, at = np.empty(n, np.int32), np.empty(n, np.int32), 0
+        for i, part in enumerate(parts):
+            for d, rows, p in part:
+                D[at : at + len(p)] = d[rows]  # cast to the detector's dtype as copied
+                owner[at : at + len(p)], pids[at : at + len(p)] = i, p
+                at += len(p)
+        return D, owner, pids
+
+    def _build_index(self, tilted: bool = False, stored: np.ndarray | None = None):
+        """One search over all keyframes' linked descriptors (`tilted`: and those of their
+        squashed views), with the owner and point of each row; `stored`: the model file's
+        KD-trees of it (`DescriptorIndex`)."""
+        alld, owner, pids = self._linked_rows(tilted)
+        hamming = self.detector.spec.norm == cv2.NORM_HAMMING
+        search = DescriptorIndex(alld, hamming, stored, seed=None) if len(alld) else None
+        index = (search, owner, pids)
         if tilted:
             self._tilted_index = index
         else:
@@ -104,9 +138,25 @@ class KeyframeRecognition:
 
     def prepare_recognition(self) -> None:
         """Build the recognition index now (FLANN over every linked descriptor: 0.1 s for
-        the sample), not in the first frame that needs it."""
+        the sample, 0.5-1 s for 144 keyframes; a model file made by this version holds it),
+        not in the first frame that needs it."""
         if self._index is None:
-            self._build_index()
+            self._build_index(stored=self.tables.get("recognition_index"))
+
+    def twins(self) -> np.ndarray:
+        """Per 3D point: has a descriptor twin elsewhere (`point_twins`); the model file's
+        table when it holds one (`build-model` makes it), else found now."""
+        t = self.tables.get("twins")
+        if t is None or len(t) != len(self.points):
+            t = self.tables["twins"] = point_twins(self)
+        return np.asarray(t, bool)
+
+    def ground(self) -> np.ndarray:
+        """Per 3D point: on the ground (`ground_points`); stored or found now."""
+        g = self.tables.get("ground")
+        if g is None or len(g) != len(self.points):
+            g = self.tables["ground"] = ground_points(self.points)
+        return np.asarray(g, bool)
 
     def recognize(
         self, descriptors: np.ndarray, top_k: int = 3, tilted: bool = False
@@ -126,16 +176,19 @@ class KeyframeRecognition:
         if len(descriptors) == 0 or not self.keyframes:
             return []
         index = self._tilted_index if tilted else self._index
-        matcher, owner, pids = index if index is not None else self._build_index(tilted)
-        if matcher is None:
+        if index is None:  # (the tilted views' index: built when a relocalisation needs it)
+            index = self._build_index(
+                tilted, None if tilted else self.tables.get("recognition_index")
+            )
+        search, owner, pids = index
+        if search is None:
             return []
         q = np.ascontiguousarray(descriptors, dtype=self.detector.spec.dtype)
-        k = knn2(q, None, matcher)
-        ok = k[:, 0] >= 0
-        i1 = k[:, 0].astype(np.int64)
-        i2 = k[:, 2].astype(np.int64)
+        i, dist = search.knn(q, 2)
+        ok = i[:, 0] >= 0
+        i1, i2 = i[:, 0], i[:, 1]
         same = ok & (i2 >= 0) & (pids[np.clip(i2, 0, None)] == pids[np.clip(i1, 0, None)])
-        good = ok & ((k[:, 1] < 0.8 * k[:, 3]) | same)
+        good = ok & ((dist[:, 0] < 0.8 * dist[:, 1]) | same)
         votes = np.bincount(owner[i1[good]], minlength=len(self.keyframes)).astype(float)
         share = np.bincount(owner, minlength=len(self.keyframes)) / max(len(owner), 1)
         chance = votes.sum() * share
@@ -150,14 +203,23 @@ class KeyframeRecognition:
         away is not matched to a keyframe that looks the other way)."""
         if not self.keyframes:
             return []
-        target = self.points.mean(axis=0) if len(self.points) else np.zeros(3)
-        centers = np.array([kf.pose.center for kf in self.keyframes]) - target
-        axes = np.array([kf.pose.R[2] for kf in self.keyframes])  # optical axis in W
+        target, centers, norms, axes = self._views()
         c = pose.center - target
-        cos_dir = centers @ c / (np.linalg.norm(centers, axis=1) * np.linalg.norm(c) + 1e-12)
+        cos_dir = centers @ c / (norms * np.linalg.norm(c) + 1e-12)
         cos_ax = axes @ pose.R[2]
         d = np.arccos(np.clip(cos_dir, -1, 1)) + 0.5 * np.arccos(np.clip(cos_ax, -1, 1))
         return [int(i) for i in np.argsort(d, kind="stable")[:k]]
+
+    def _views(self):
+        """(landmark centre, keyframe centres from it, their lengths, optical axes in W),
+        found once: every detection asks for the nearest keyframes."""
+        key = (len(self.keyframes), len(self.points))
+        if self._view_table is None or self._view_table[0] != key:
+            target = self.points.mean(axis=0) if len(self.points) else np.zeros(3)
+            centers = np.array([kf.pose.center for kf in self.keyframes]) - target
+            axes = np.array([kf.pose.R[2] for kf in self.keyframes])  # optical axis in W
+            self._view_table = (key, target, centers, np.linalg.norm(centers, axis=1), axes)
+        return self._view_table[1:]
 
     # --- files --------------------------------------------------------------------------
 
@@ -177,8 +239,12 @@ class LandmarkModel(KeyframeRecognition):
     point_observations: dict = field(default_factory=dict)
     version: int = FORMAT_VERSION
     meta: dict = field(default_factory=dict)  # build settings: spacing_deg, roi, inputs, ...
+    # tables read from the model file or found when first asked: twins, ground (per point)
+    # and the recognition index's KD-trees (`_table_arrays`)
+    tables: dict = field(default_factory=dict, repr=False, compare=False)
     _index: object = field(default=None, repr=False, compare=False)
     _tilted_index: object = field(default=None, repr=False, compare=False)
+    _view_table: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         self.points = np.asarray(self.points, float).reshape(-1, 3)
@@ -254,23 +320,23 @@ class LandmarkModel(KeyframeRecognition):
             # `with`, an interrupt leaves the handle open and close() then raises a
             # ValueError that hides the interrupt; one entry takes milliseconds to write
             with zf as z:
-                entries = {"manifest.json": json.dumps(manifest, indent=1).encode()}
-                for k, a in arrays.items():
+                with signals.deferred():
+                    z.writestr("manifest.json", json.dumps(manifest, indent=1).encode())
+                for k in list(arrays):  # one array's bytes at a time (memory)
                     buf = io.BytesIO()
-                    np.save(buf, a, allow_pickle=False)
-                    entries[f"{k}.npy"] = buf.getvalue()
-                for name, data in entries.items():
+                    np.save(buf, arrays.pop(k), allow_pickle=False)
+                    kind = zipfile.ZIP_STORED if f"{k}.npy" in _MAPPED else zipfile.ZIP_DEFLATED
                     with signals.deferred():
-                        z.writestr(name, data)
+                        z.writestr(f"{k}.npy", buf.getbuffer(), compress_type=kind)
+                    del buf
 
     def _arrays(self) -> dict[str, np.ndarray]:
         kfs = self.keyframes
         counts = np.array([len(kf.keypoints) for kf in kfs], np.int64)
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        desc = [kf.descriptors for kf in kfs]
+        desc = [kf.__dict__["_descriptors"] for kf in kfs]  # as held: a loaded one's bytes
         dim = desc[0].shape[1] if desc else 128
-        all_desc = np.concatenate(desc) if desc else np.zeros((0, dim), np.float32)
-        all_desc = _stored_descriptors(all_desc)
+        all_desc = _stored_descriptors(desc, dim)
         thumbs = [kf.thumbnail for kf in kfs]
         th_shapes = np.array([t.shape[:2] for t in thumbs], np.int64).reshape(-1, 2)
         obs = self.point_observations
@@ -292,7 +358,17 @@ class LandmarkModel(KeyframeRecognition):
             "obs_keyframe": np.asarray(obs.get("keyframe", []), np.int32),
             "obs_feature": np.asarray(obs.get("feature", []), np.int32),
             **self._tilted_arrays(dim),
+            **self._table_arrays(),
         }
+
+    def _table_arrays(self) -> dict[str, np.ndarray]:
+        """What tracking needs before its first frame, found once here rather than at every
+        `mirage track` start: the twins and ground tables and the recognition KD-trees."""
+        tables = {"twins": self.twins().astype(np.uint8), "ground": self.ground().astype(np.uint8)}
+        self.prepare_recognition()  # after the twins: the trees `track` built from them
+        search = self._index[0]
+        tables["recognition_index"] = search.to_bytes() if search else np.zeros(0, np.uint8)
+        return tables
 
     def _tilted_arrays(self, dim: int) -> dict[str, np.ndarray]:
         """The squashed views' features (tilt.py), concatenated like the keyframes'."""
@@ -303,7 +379,7 @@ class LandmarkModel(KeyframeRecognition):
             for kf in self.keyframes
         ]
         counts = [len(p[2]) for p in parts]
-        desc = _stored_descriptors(np.concatenate([np.asarray(p[1]) for p in parts]))
+        desc = _stored_descriptors([np.asarray(p[1]) for p in parts], dim)
         return {
             "tilt_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
             "tilt_keypoints": np.concatenate([p[0] for p in parts]).astype(np.float32),
@@ -330,16 +406,10 @@ class LandmarkModel(KeyframeRecognition):
                         f"model {p} has format version {version}, this mirage reads version "
                         f"{FORMAT_VERSION}; {hint}"
                     )
-                arrays = {}
-                for name, info in manifest["arrays"].items():
-                    try:
-                        raw = z.read(f"{name}.npy")
-                    except KeyError:
-                        raise InputError(f"model {p} is incomplete (no {name}); {hint}") from None
-                    a = np.load(io.BytesIO(raw), allow_pickle=False)
-                    if list(a.shape) != info["shape"] or _sha(a) != info["sha256"]:
-                        raise InputError(f"model {p} is corrupt ({name} checksum); {hint}")
-                    arrays[name] = a
+                arrays = {
+                    name: _read_array(z, p, name, info, hint)
+                    for name, info in manifest["arrays"].items()
+                }
         except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, OSError, ValueError) as e:
             raise InputError(f"model {p} is corrupt or truncated ({e}); {hint}") from None
         except (KeyError, TypeError) as e:
@@ -362,7 +432,8 @@ class LandmarkModel(KeyframeRecognition):
             model=c.get("model", "pinhole"),
         )
         detector = DetectorSettings.from_dict(manifest["detector"])
-        desc = a["descriptors"].astype(detector.spec.dtype, copy=False)
+        dtype = np.dtype(detector.spec.dtype)  # descriptors stay in the file until used
+        desc, cast = a["descriptors"], dtype if a["descriptors"].dtype != dtype else None
         off, th_off = a["offsets"], np.concatenate([[0], np.cumsum(np.prod(a["thumb_shapes"], 1))])
         kfs = []
         for i, info in enumerate(manifest["keyframes"]):
@@ -376,18 +447,19 @@ class LandmarkModel(KeyframeRecognition):
                     desc[s:e],
                     a["point_ids"][s:e],
                     a["thumbnails"][th_off[i] : th_off[i + 1]].reshape(h, w),
+                    dtype=cast,
                 )
             )
         if "tilt_offsets" in a:  # models made with squashed views (tilt.py)
             to = a["tilt_offsets"]
-            td = a["tilt_descriptors"].astype(detector.spec.dtype, copy=False)
+            td = a["tilt_descriptors"]  # as stored: cast where matched
             for i, kf in enumerate(kfs):
                 s, e = int(to[i]), int(to[i + 1])
                 kf.tilted = (a["tilt_keypoints"][s:e], td[s:e], a["tilt_point_ids"][s:e])
         obs = {"point": a["obs_point"], "keyframe": a["obs_keyframe"], "feature": a["obs_feature"]}
-        return cls(
-            camera, detector, kfs, a["points"], obs, int(manifest["version"]), manifest["meta"]
-        )
+        tables = {k: a[k] for k in _TABLES if k in a}
+        version, meta = int(manifest["version"]), manifest["meta"]
+        return cls(camera, detector, kfs, a["points"], obs, version, meta, tables)
 
 
 def model_summary(model: LandmarkModel) -> dict:
@@ -413,51 +485,11 @@ def model_summary(model: LandmarkModel) -> dict:
 
 
 def point_twins(model: LandmarkModel, separation_m: float = 0.05, k: int = 4) -> np.ndarray:
-    """Per 3D point: True when one of its descriptors has a near twin at another 3D place.
-
-    Repeated texture (floor tiles, look-alike faces) makes a feature match the wrong copy
-    as readily as the right one, so such points must not decide a pose on their own. A
-    twin is a descriptor of a point more than `separation_m` away that is closer than the
-    model's typical distance between two views of one point divided by the Lowe ratio
-    (0.8): a query of this point would match the twin or fail the ratio test. Found with
-    one k-nearest-neighbour pass over the model's own descriptors (about 1 s for 15k).
-    """
-    D, P = [], []
-    for kf in model.keyframes:
-        _, d, p = kf.linked()
-        D.append(d)
-        P.append(p)
-    twins = np.zeros(len(model.points), bool)
-    if not D or sum(len(d) for d in D) < 2:
-        return twins
-    D, P = np.ascontiguousarray(np.concatenate(D)), np.concatenate(P).astype(np.int64)
-    if D.dtype == np.uint8:
-        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
-    else:
-        D = D.astype(np.float32)
-        matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 32})
-    try:
-        knn = matcher.knnMatch(D, D, k=k)
-    except cv2.error:
-        return twins
-    idx = np.full((len(D), k), -1, np.int64)
-    dist = np.full((len(D), k), np.inf)
-    for i, ms in enumerate(knn):  # one short list per row
-        for j, m in enumerate(ms[:k]):
-            idx[i, j], dist[i, j] = m.trainIdx, m.distance
-    valid = idx >= 0
-    pj = P[np.clip(idx, 0, None)]
-    rows = np.arange(len(D))[:, None]
-    same = valid & (pj == P[:, None]) & (idx != rows)
-    sep = np.linalg.norm(model.points[pj] - model.points[P][:, None], axis=2)
-    other = valid & (sep > separation_m)
-    d_same = np.where(same, dist, np.inf).min(1)
-    typical = np.median(d_same[np.isfinite(d_same)]) if np.isfinite(d_same).any() else 0.0
-    if not typical > 0:
-        typical = float(np.median(dist[valid]))
-    near = np.where(other, dist, np.inf).min(1) < typical / 0.8
-    twins[P[near]] = True
-    return twins
+    """Per 3D point: True when one of its descriptors has a near twin at another 3D place
+    (`model_index.point_twins`: repeated texture, which must not decide a pose alone)."""
+    D, _, P = model._linked_rows()
+    hamming = model.detector.spec.norm == cv2.NORM_HAMMING
+    return _twins(D, P, model.points, hamming, separation_m, k)
 
 
 def ground_points(
@@ -499,13 +531,22 @@ def ground_points(
     return on if r_on > 1.5 * r_off else ground
 
 
-def _stored_descriptors(desc: np.ndarray) -> np.ndarray:
-    """SIFT descriptors are integers 0..255 held as float: bytes on disk, lossless (`load`
-    casts back to the detector's dtype); RootSIFT's are not integers and stay float."""
-    if desc.dtype != np.uint8 and np.array_equal(desc, np.round(desc)):
-        if desc.size == 0 or (desc.min() >= 0 and desc.max() <= 255):
-            return desc.astype(np.uint8)
-    return desc
+def _stored_descriptors(parts: list[np.ndarray], dim: int) -> np.ndarray:
+    """The parts' descriptors, concatenated in their on-disk form: SIFT's are integers
+    0..255 held as float, bytes on disk, lossless (`load` casts back to the detector's
+    dtype); RootSIFT's are not integers and stay float. Part by part: no float copy of all
+    (147 MB for 144 keyframes)."""
+    if not parts:
+        return np.zeros((0, dim), np.float32)
+    if all(_bytes_exactly(p) for p in parts):
+        return np.concatenate([p.astype(np.uint8, copy=False) for p in parts])
+    return np.concatenate(parts)
+
+
+def _bytes_exactly(d: np.ndarray) -> bool:
+    if d.dtype == np.uint8 or d.size == 0:
+        return True
+    return bool(np.array_equal(d, np.round(d)) and d.min() >= 0 and d.max() <= 255)
 
 
 def observations_from_keyframes(keyframes: list[Keyframe]) -> dict[str, np.ndarray]:
@@ -558,5 +599,53 @@ def _azimuth_steps(azimuths_deg) -> tuple[np.ndarray, np.ndarray]:
     return a, np.diff(np.concatenate([a, a[:1] + 360.0]))
 
 
+# what a model file may hold besides its keyframes and points (`_table_arrays`); a file
+# without them (made before) gets them built when first needed
+_TABLES = ("twins", "ground", "recognition_index")
+
+# arrays stored uncompressed and memory-mapped at load: a keyframe's descriptors are read
+# when it is first matched (SIFT's bytes compress to 80%: not worth inflating at every load)
+_MAPPED = {"descriptors.npy", "tilt_descriptors.npy"}
+
+
+def _read_array(z: zipfile.ZipFile, path, name: str, info: dict, hint: str) -> np.ndarray:
+    """One array of a model file, checked against its manifest entry: memory-mapped when
+    stored uncompressed, else inflated."""
+    try:
+        zi = z.getinfo(f"{name}.npy")
+    except KeyError:
+        raise InputError(f"model {path} is incomplete (no {name}); {hint}") from None
+    a = _mapped(z, zi, path) if zi.compress_type == zipfile.ZIP_STORED else None
+    if a is None:
+        a = np.load(io.BytesIO(z.read(zi)), allow_pickle=False)
+    if list(a.shape) != info["shape"] or _sha(a) != info["sha256"]:
+        raise InputError(f"model {path} is corrupt ({name} checksum); {hint}")
+    return a
+
+
+def _mapped(z: zipfile.ZipFile, zi: zipfile.ZipInfo, path) -> np.ndarray | None:
+    """The .npy member `zi` (stored, not compressed) as a read-only memory map of the file;
+    None when it cannot be (then it is read)."""
+    with z.open(zi) as f:
+        version = np.lib.format.read_magic(f)
+        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else None
+        if read is None and version == (2, 0):
+            read = np.lib.format.read_array_header_2_0
+        if read is None:
+            return None
+        shape, fortran, dtype = read(f)
+        header = f.tell()
+    if fortran or dtype.hasobject or not shape or 0 in shape:
+        return None
+    z.fp.seek(zi.header_offset)
+    local = z.fp.read(30)  # the local file header: its name and extra field lengths
+    if local[:4] != b"PK\x03\x04":
+        return None
+    start = zi.header_offset + 30 + int.from_bytes(local[26:28], "little")
+    start += int.from_bytes(local[28:30], "little") + header
+    return np.memmap(path, dtype, "r", start, shape)
+
+
 def _sha(a: np.ndarray) -> str:
-    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+    a = np.ascontiguousarray(a)
+    return hashlib.sha256(a.data if a.size else b"").hexdigest()

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .features import Detector, detect
 from .pose import Pose
@@ -47,6 +46,8 @@ def tilted_features(
     empty = (np.zeros((0, 2), np.float32), np.zeros((0, 0)), np.zeros(0, np.int32))
     if linked.sum() == 0:
         return empty
+    from scipy.spatial import cKDTree  # here: `track` imports this module, not scipy's
+
     tree = cKDTree(keypoints[linked])
     pids = point_ids[linked]
     h, w = gray.shape[:2]

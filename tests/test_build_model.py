@@ -1,6 +1,8 @@
 """build-model / inspect (issue 5): accuracy on the sample keyframes, the model file, the
 board path end to end, and one-line errors for bad input."""
 
+import dataclasses
+import json
 import shutil
 import zipfile
 
@@ -12,9 +14,11 @@ from conftest import SAMPLE, assert_one_line_error, run_mirage
 from mirage_cli.build_model import ROI, select_keyframes, triangulate
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
-from mirage_cli.model import LandmarkModel, azimuth_gaps
-from mirage_cli.pose import look_at
+from mirage_cli.model import LandmarkModel, azimuth_gaps, ground_points, point_twins
+from mirage_cli.model_index import DescriptorIndex
+from mirage_cli.pose import Pose, look_at
 from mirage_cli.synth import LANDMARK_BOUNDS, landmark_surface_distance
+from mirage_cli.tracking import Tracker, TrackSettings
 from mirage_cli.trajectory import poses_by_frame, read_pose_csv, row_pose
 
 KF = SAMPLE / "keyframes"
@@ -94,6 +98,109 @@ def test_recognize_and_nearest_keyframes(model):
     a = np.radians(45)
     pose = look_at([1.5 * np.cos(a), 1.5 * np.sin(a), 0.5], [0, 0, 0.28])
     assert set(model.nearest_keyframes(pose, k=2)) == {4, 5}
+
+
+def test_model_file_holds_the_tables_tracking_needs(built, tmp_path):
+    """The twins and ground tables and the recognition KD-trees are built once, by
+    build-model, and read back, not rebuilt at each start; they equal what a model file
+    without them gets built at load (issue 31: 5 s of a 144-keyframe model's start)."""
+    model = LandmarkModel.load(built[0])
+    assert set(model.tables) == {"twins", "ground", "recognition_index"}
+    assert np.array_equal(model.twins(), point_twins(model))
+    assert np.array_equal(model.ground(), ground_points(model.points))
+    model.prepare_recognition()
+    assert model._index[0].loaded  # read, not built again
+    old = _without_tables(built[0], tmp_path / "old.mirage")
+    rebuilt = LandmarkModel.load(old)
+    assert not rebuilt.tables
+    assert np.array_equal(rebuilt.twins(), model.twins())
+    assert np.array_equal(rebuilt.ground(), model.ground())
+    for i in (0, 9, 20, 33):
+        q = model.keyframes[i].descriptors
+        assert model.recognize(q)[0][0] == rebuilt.recognize(q)[0][0] == i
+        assert model.recognize(q, tilted=True)[0][0] == i
+    assert not rebuilt._index[0].loaded
+    Tracker(rebuilt, rebuilt.camera, TrackSettings())  # a file of before still tracks
+
+
+def _without_tables(path, out):
+    """The model file as build-model wrote it before the tables were stored."""
+    with zipfile.ZipFile(path) as z:
+        items = {n: z.read(n) for n in z.namelist()}
+    manifest = json.loads(items.pop("manifest.json"))
+    for name in ("twins", "ground", "recognition_index"):
+        del manifest["arrays"][name]
+        del items[f"{name}.npy"]
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("manifest.json", json.dumps(manifest))
+        for n, b in items.items():
+            z.writestr(n, b)
+    return out
+
+
+def test_stored_index_searches_as_the_index_it_was_saved_from():
+    rng = np.random.default_rng(0)
+    data = np.round(rng.uniform(0, 60, (3000, 128))).astype(np.float32)
+    index = DescriptorIndex(data)
+    again = DescriptorIndex(data, stored=index.to_bytes())
+    assert again.loaded and not index.loaded
+    q = data[::7] + rng.normal(0, 2, (len(data[::7]), 128)).astype(np.float32)
+    i1, d1 = index.knn(q, 2)
+    i2, d2 = again.knn(q, 2)
+    assert np.array_equal(i1, i2) and np.array_equal(d1, d2)
+    assert (i1[:, 0] == np.arange(0, len(data), 7)).mean() > 0.95  # its own row, mostly
+    bf = cv2.BFMatcher(cv2.NORM_L2).match(q, data)  # distances as OpenCV's matchers give
+    exact = i1[:, 0] == [m.trainIdx for m in bf]
+    assert np.allclose(d1[exact, 0], np.array([m.distance for m in bf])[exact], rtol=1e-5)
+    garbage = DescriptorIndex(data, stored=np.zeros(100, np.uint8))  # another FLANN's: built
+    assert not garbage.loaded and np.array_equal(garbage.knn(q[:5], 2)[0][:, 0], i1[:5, 0])
+
+
+def test_descriptors_are_memory_mapped_and_cast_when_used(built, tmp_path):
+    """Loading reads no descriptor: they stay in the file (stored, not compressed) until a
+    keyframe is matched, then come back as the detector's dtype, unchanged."""
+    with zipfile.ZipFile(built[0]) as z:
+        assert z.getinfo("descriptors.npy").compress_type == zipfile.ZIP_STORED
+    model = LandmarkModel.load(built[0])
+    kf = model.keyframes[5]
+    raw = kf.__dict__["_descriptors"]
+    assert isinstance(raw, np.memmap) and raw.dtype == np.uint8
+    d = kf.descriptors
+    assert d.dtype == np.float32 and np.array_equal(d, raw.astype(np.float32))
+    assert np.array_equal(kf.linked()[1], d[kf.point_ids >= 0])
+    bad = tmp_path / "bad.mirage"  # a changed byte in a mapped array is still found
+    data = bytearray(built[0].read_bytes())
+    with zipfile.ZipFile(built[0]) as z:
+        at = z.getinfo("descriptors.npy").header_offset + 4096
+    data[at] ^= 0xFF
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="corrupt"):
+        LandmarkModel.load(bad)
+
+
+def test_nearest_keyframes_bound_the_matching(built):
+    """A model with 4x the keyframes (the sample's at four heights) gives the guided search
+    the same number of keyframes to match: its cost does not grow with the model."""
+    model = LandmarkModel.load(built[0])
+    kfs = [
+        dataclasses.replace(kf, name=f"{kf.name}_{dz}", pose=_raised(kf.pose, dz))
+        for dz in (-0.3, 0.0, 0.3, 0.6)
+        for kf in model.keyframes
+    ]
+    big = LandmarkModel(model.camera, model.detector, kfs, model.points)
+    pose = model.keyframes[7].pose
+    t_small = Tracker(model, model.camera, TrackSettings())
+    t_big = Tracker(big, big.camera, TrackSettings())
+    k = TrackSettings().local_keyframes
+    near = big.nearest_keyframes(pose, k)
+    assert len(near) == k and 36 + 7 in near  # the keyframe itself, at its own height
+    rows = [len(t._candidates(t.model.nearest_keyframes(pose, k))[0]) for t in (t_small, t_big)]
+    assert rows[1] <= 1.5 * rows[0], rows
+
+
+def _raised(pose, dz):
+    c = pose.center + [0, 0, dz]
+    return Pose(pose.R, -pose.R @ c)
 
 
 def test_inspect_prints_summary_and_plots(built, mirage, tmp_path):

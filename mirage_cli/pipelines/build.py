@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from .. import runtime
 from ..boards import Board
 from ..build_model import (
     BuildResult,
@@ -28,6 +29,7 @@ def build(
 ) -> BuildResult:
     """The model from the views of `sources` (images, folders, globs, a video or a bag);
     `progress(stage, k, n)` sees each stage's steps."""
+    runtime.return_freed_memory()  # each stage's big arrays back to the kernel when freed
     views = views_from_inputs(
         sources, camera, settings, poses_csv, board,
         (lambda k, n: progress("views", k, n)) if progress else None,

@@ -28,7 +28,7 @@ from .. import signals
 from ..camera import Camera
 from ..features import guided_match, make_detector, to_gray
 from ..frames import Frame
-from ..model import LandmarkModel, ground_points, point_twins
+from ..model import LandmarkModel
 from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
 from ..signals import through_compiled_code
@@ -88,9 +88,9 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self.anchor_n = 0  # points detected in the anchor
         self._anchor_level: np.ndarray | None = None  # their 7x7 means (flow's gain check)
         self._kf_cache: dict[int, tuple] = {}
-        self.twins = point_twins(model)  # the model's tables, built before the first frame
+        self.twins = model.twins()  # the model's tables: stored in its file, or built now
         model.prepare_recognition()
-        self.on_landmark = ~ground_points(model.points)
+        self.on_landmark = ~model.ground()
         self.votes = ~self.twins & self.on_landmark  # may decide a relocalisation
         self._frame_no = -1  # frames processed, for the smoother's anchors
         self._anchor_no = -1  # the frame whose detection the flowed points come from
