@@ -21,7 +21,7 @@ from .. import refine, runtime, signals
 from ..camera import Camera
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from ..fileio import atomic_path, video_frames_written
-from ..frames import Frame, FrameSource, gray_frames, matching_camera, prefetch
+from ..frames import Frame, FrameSource, matching_camera, prefetch
 from ..logs import log
 from ..model import LandmarkModel
 from ..plotting import draw_overlay
@@ -189,8 +189,9 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
             rrd = stack.enter_context(TrackRecording(job.rerun, tracker.model, camera))
         bar = stack.enter_context(reporter.progress(total, "tracking"))
         keep = ov is not None or rrd is not None  # the overlays draw on the colour image
-        frames = src.frames(job.first, job.last, job.every)
-        frames = prefetch(frames if keep else gray_frames(frames))
+        # decoded (and, without overlays, grayed: a video's straight from its luma) in the
+        # reader thread, a few frames ahead
+        frames = prefetch(src.frames(job.first, job.last, job.every, luma=not keep))
 
         def emit(records):
             for rec in records:
