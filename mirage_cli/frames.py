@@ -52,8 +52,10 @@ _GLOB_CHARS = re.compile(r"[*?\[]")
 # (else, e.g. a uniform frame, the range is unknown and the video takes the BGR path).
 LUMA_TOLERANCE = 2.0
 LUMA_MARGIN = 0.5
-# video range (Y 16-235) to full range (0-255): (Y - 16) * 255 / 219
-_VIDEO_RANGE_LUT = np.clip(np.round((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
+# video range (Y 16-235) to full range (0-255): (Y - 16) * 255 / 219, truncated as FFmpeg's
+# conversion to BGR does (on the sample orbit BGR2GRAY equals it on 83% of the pixels and
+# is within 1 on 99.9%, mean 0.17; rounded: 8%, mean 1.33, and poses 1.2 mm apart, not 0.7)
+_VIDEO_RANGE_LUT = np.clip(np.floor((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
 
 
 @dataclass
