@@ -49,9 +49,10 @@ _GLOB_CHARS = re.compile(r"[*?\[]")
 
 # Gray from the luma plane: the first frame's luma (range-expanded) must be BGR2GRAY of its
 # BGR within LUMA_TOLERANCE grey levels on average, and the other range LUMA_MARGIN worse
-# (else, e.g. a uniform frame, the range is unknown and the video takes the BGR path).
+# (else, e.g. a uniform frame, the range is unknown and the video takes the BGR path:
+# FFmpeg's BGR of a uniform full-range grey is up to a level darker, as a limited one's).
 LUMA_TOLERANCE = 2.0
-LUMA_MARGIN = 0.5
+LUMA_MARGIN = 1.5
 # video range (Y 16-235) to full range (0-255): (Y - 16) * 255 / 219, truncated as FFmpeg's
 # conversion to BGR does for grey (on the sample orbit within 1 of BGR2GRAY on 99.9% of the
 # pixels, mean 0.84; rounded: 59%, mean 1.33)
@@ -181,7 +182,7 @@ def luma_range(luma: np.ndarray | None, bgr: np.ndarray | None) -> str | None:
     BGR off) is that frame's gray: "limited" (video range 16-235, expanded by
     `expand_luma`; H.264, MPEG-4 and most cameras), "full" (0-255, as is: MJPEG's yuvj,
     gray video) or None: not this frame's gray (packed RGB or BGRA, 10-bit, another size)
-    or a frame that cannot tell the ranges apart (uniform grey near 113)."""
+    or a frame that cannot tell the ranges apart (a uniform grey)."""
     if luma is None or bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3:
         return None
     if luma.dtype != np.uint8 or luma.shape != bgr.shape[:2]:
