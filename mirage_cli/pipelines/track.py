@@ -146,6 +146,11 @@ def track(job: TrackJob, reporter: Reporter = SILENT) -> TrackResult:
     the overlay and the Rerun recording) as it comes, `job.smooth.lag` frames late.
     Ctrl-C or SIGTERM keeps the finished frames in every output and comes back as the
     result's `interrupted`, for the caller to raise once it has said what was kept."""
+    # OpenCV's RNG (a thread's own) as a new process has it: the model's KD-tree index is
+    # randomized from it, so a run after others in one process (`batch` serially) matched
+    # otherwise than a fresh one (9th digit of a pose, gray from luma on a flight of the
+    # sample); 0 is RNG's default state
+    cv2.setRNGSeed(0)
     warm_up_solver(reporter)
     runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
     points = job.tracker.model.points
