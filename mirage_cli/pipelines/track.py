@@ -21,7 +21,7 @@ from .. import refine, runtime, signals
 from ..camera import Camera
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from ..fileio import atomic_path, video_frames_written
-from ..frames import Frame, FrameSource, matching_camera, prefetch
+from ..frames import Frame, FrameSource, gray_frames, matching_camera, prefetch
 from ..logs import log
 from ..model import LandmarkModel
 from ..plotting import draw_overlay
@@ -194,9 +194,11 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
             rrd = stack.enter_context(TrackRecording(job.rerun, tracker.model, camera))
         bar = stack.enter_context(reporter.progress(total, "tracking"))
         keep = ov is not None or rrd is not None  # the overlays draw on the colour image
-        # decoded (and, without overlays, grayed: a video's straight from its luma) in the
-        # reader thread, a few frames ahead
-        frames = prefetch(src.frames(job.first, job.last, job.every, luma=not keep))
+        # decoded (and grayed, without overlays) in the reader thread, a few frames ahead; not
+        # from the luma plane (frames(luma=True)) until the overlays' runs can track the same
+        # gray: --overlay must not change the poses (test_deterministic_with_overlay)
+        frames = src.frames(job.first, job.last, job.every)
+        frames = prefetch(frames if keep else gray_frames(frames))
 
         def emit(records):
             for rec in records:
