@@ -5,11 +5,14 @@ INPUT arguments (files, folders, globs, one video or one ROS bag) resolve to a n
 sorted image list, a video or a bag (`bags.BagRef`, which stands where a video path does);
 images are read with a clear error instead of OpenCV's silent None; and `FrameSource`
 yields timed frames of any kind, reporting a damaged stretch of a video (or a damaged bag
-message) frame by frame (image None) and decoding on after it.
+message) frame by frame (image None) and decoding on after it. A tracker that needs only
+gray gets a video's gray straight from the decoder's luma plane when the first frame
+proves it the same gray (`luma_range`), skipping FFmpeg's conversion to BGR.
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import logging
 import os
@@ -43,6 +46,17 @@ VIDEO_EXTS = frozenset(
     {".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".mts"}
 )
 _GLOB_CHARS = re.compile(r"[*?\[]")
+
+# Gray from the luma plane: the first frame's luma (range-expanded) must be BGR2GRAY of its
+# BGR within LUMA_TOLERANCE grey levels on average, and the other range LUMA_MARGIN worse
+# (else, e.g. a uniform frame, the range is unknown and the video takes the BGR path:
+# FFmpeg's BGR of a uniform full-range grey is up to a level darker, as a limited one's).
+LUMA_TOLERANCE = 2.0
+LUMA_MARGIN = 1.5
+# video range (Y 16-235) to full range (0-255): (Y - 16) * 255 / 219, truncated as FFmpeg's
+# conversion to BGR does for grey (on the sample orbit within 1 of BGR2GRAY on 99.9% of the
+# pixels, mean 0.84; rounded: 59%, mean 1.33)
+_VIDEO_RANGE_LUT = np.clip(np.floor((np.arange(256) - 16) * 255 / 219), 0, 255).astype(np.uint8)
 
 
 @dataclass
@@ -163,6 +177,32 @@ def read_image(path: str | Path, gray: bool = False) -> np.ndarray:
     return img
 
 
+def luma_range(luma: np.ndarray | None, bgr: np.ndarray | None) -> str | None:
+    """Whether the decoder's plane 0 of a frame (`luma`, read with OpenCV's conversion to
+    BGR off) is that frame's gray: "limited" (video range 16-235, expanded by
+    `expand_luma`; H.264, MPEG-4 and most cameras), "full" (0-255, as is: MJPEG's yuvj,
+    gray video) or None: not this frame's gray (packed RGB or BGRA, 10-bit, another size)
+    or a frame that cannot tell the ranges apart (a uniform grey)."""
+    if luma is None or bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3:
+        return None
+    if luma.dtype != np.uint8 or luma.shape != bgr.shape[:2]:
+        return None
+    ref = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(np.int16)
+    err = {
+        r: float(np.abs(expand_luma(luma, r).astype(np.int16) - ref).mean())
+        for r in ("limited", "full")
+    }
+    best, other = sorted(err, key=err.get)
+    if err[best] > LUMA_TOLERANCE or err[other] - err[best] < LUMA_MARGIN:
+        return None
+    return best
+
+
+def expand_luma(luma: np.ndarray, luma_range: str) -> np.ndarray:
+    """A luma plane as full-range gray (what BGR2GRAY of the decoded colour gives)."""
+    return cv2.LUT(luma, _VIDEO_RANGE_LUT) if luma_range == "limited" else luma
+
+
 class Frame(NamedTuple):
     """One frame of a source: `id` is what the pose CSV's `frame` column holds."""
 
@@ -221,6 +261,7 @@ class FrameSource:
         self.video, self.images = media.video, media.images
         self.times: np.ndarray | None = None
         self._size: tuple[int, int] | None = None
+        self._luma: str | None | bool = False  # False: not checked yet (`luma_mode`)
         self.bag: bags.ImageTopic | None = None
         if media.is_bag:
             if fps:
@@ -279,11 +320,24 @@ class FrameSource:
         return self._size
 
     def frames(
-        self, start: int = 0, end: int | None = None, every: int = 1, gray: bool = False
+        self,
+        start: int = 0,
+        end: int | None = None,
+        every: int = 1,
+        gray: bool = False,
+        luma: bool = False,
     ) -> Iterator[Frame]:
-        """Frames start, start + every, ... before `end`; undecodable ones with image None."""
+        """Frames start, start + every, ... before `end`; undecodable ones with image None.
+
+        `gray`: gray images (read as gray). `luma`: gray images as the tracker's gray
+        (BGR2GRAY of the colour frame), a video's straight from its luma plane when its
+        first frame proves that the same gray (`luma_mode`; within a grey level or two).
+        """
         if every < 1:
             raise InputError(f"frame step must be >= 1, got {every}")
+        if luma and (self.bag is not None or self.video is None):
+            yield from gray_frames(self.frames(start, end, every))
+            return
         if self.bag is not None:
             last, warned = None, False  # (index, stamp) of the previous message
             for i, t, img in bags.image_frames(self.bag, start, end, every, gray):
@@ -299,7 +353,7 @@ class FrameSource:
                 yield Frame(i, i, t, img)
             return
         if self.video is not None:
-            yield from self._video_frames(start, end, every, gray)
+            yield from self._video_frames(start, end, every, gray or luma, luma)
             return
         for i, p in enumerate(self.images):
             if i < start or (end is not None and i >= end) or (i - start) % every:
@@ -311,14 +365,25 @@ class FrameSource:
             t = float(self.times[i]) if self.times is not None else float("nan")
             yield Frame(i, p.name, t, img)
 
-    def _video_frames(self, start, end, every, gray) -> Iterator[Frame]:
+    def luma_mode(self) -> str | None:
+        """The range of the video's luma plane when its first frame proves the plane its
+        gray (`luma_range`), else None: checked once, at the first gray read."""
+        if self._luma is False:
+            self._luma = _luma_mode(self.video)
+            if self._luma is None:
+                log.debug(f"{self.video}: gray by BGR2GRAY (the luma plane is not its gray)")
+        return self._luma
+
+    def _video_frames(self, start, end, every, gray, luma=False) -> Iterator[Frame]:
         """Decode in order; a damaged stretch is reported frame by frame as undecodable and
-        decoding resumes after it (FFmpeg cannot resync by itself, so reopen and seek)."""
+        decoding resumes after it (FFmpeg cannot resync by itself, so reopen and seek).
+        `luma`: gray from the luma plane when `luma_mode` allows, not through BGR."""
 
         def wanted(i):
             return i >= start and (i - start) % every == 0 and (end is None or i < end)
 
-        cap, i = _open_capture(self.video), 0
+        mode = self.luma_mode() if luma else None
+        cap, i = _open_capture(self.video, luma=mode is not None), 0
         try:
             if start > 0:
                 _seek(cap, start)
@@ -335,7 +400,7 @@ class FrameSource:
                         yield Frame(i, i, i / self.fps, None)
                     i += 1
                     cap.release()
-                    cap = _open_capture(self.video)
+                    cap = _open_capture(self.video, luma=mode is not None)
                     _seek(cap, i)
                     while i < self.count and int(cap.get(cv2.CAP_PROP_POS_FRAMES)) != i:
                         if wanted(i):
@@ -344,15 +409,10 @@ class FrameSource:
                         _seek(cap, i)
                     continue
                 if wanted(i):
-                    try:
-                        ok, frame = cap.retrieve()
-                    except cv2.error:
-                        ok, frame = False, None
+                    frame = _retrieve(cap, gray, mode)
                     ms = cap.get(cv2.CAP_PROP_POS_MSEC)
                     t = ms / 1000.0 if ms and ms > 0 else i / self.fps
-                    if ok and frame is not None and gray and frame.ndim == 3:
-                        frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-                    yield Frame(i, i, t, frame if ok else None)
+                    yield Frame(i, i, t, frame)
                 i += 1
         finally:
             cap.release()
@@ -448,9 +508,15 @@ def _seek(cap, frame: int) -> None:
         pass
 
 
-def _open_capture(p: Path, strict: bool = True):
+def _open_capture(p: Path, strict: bool = True, luma: bool = False):
+    """`p` opened by OpenCV (None, or InputError when `strict`, if it cannot be); `luma`:
+    by FFmpeg with the conversion to BGR off (frames are the decoder's plane 0)."""
     try:
-        cap = cv2.VideoCapture(str(p))
+        if luma:
+            with _quiet_opencv():  # "BGR conversion turned OFF ... at your own risk"
+                cap = cv2.VideoCapture(str(p), cv2.CAP_FFMPEG, [cv2.CAP_PROP_CONVERT_RGB, 0])
+        else:
+            cap = cv2.VideoCapture(str(p))
     except cv2.error:
         cap = None
     if cap is None or not cap.isOpened():
@@ -460,6 +526,56 @@ def _open_capture(p: Path, strict: bool = True):
             raise InputError(f"cannot open video {p} (missing, corrupt or unsupported codec)")
         return None
     return cap
+
+
+def _retrieve(cap, gray: bool, luma: str | None, raw: bool = False) -> np.ndarray | None:
+    """The grabbed frame, None when it does not decode: BGR, or gray by BGR2GRAY, or (with
+    `luma`, its range) the luma plane of a capture opened with `luma`, as full range.
+    A raw frame's retrieval is quiet ("unsupported picture format ... treated as 8UC1"):
+    OpenCV says it once a process, at the first retrieval its log level lets through."""
+    try:
+        with _quiet_opencv() if raw or luma is not None else contextlib.nullcontext():
+            ok, frame = cap.retrieve()
+        if not ok or frame is None:
+            return None
+        if luma is not None:
+            return expand_luma(frame, luma) if frame.ndim == 2 else None
+        return cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if gray and frame.ndim == 3 else frame
+    except cv2.error:
+        return None
+
+
+def _luma_mode(p: Path) -> str | None:
+    """`luma_range` of the video's first frame, read both ways (FFmpeg only), or None."""
+    first: dict[bool, np.ndarray | None] = {}
+    for luma in (False, True):
+        cap = _open_capture(p, strict=False, luma=luma)
+        if cap is None:
+            return None
+        try:
+            if not luma and cap.getBackendName() != "FFMPEG":
+                return None
+            first[luma] = _retrieve(cap, False, None, raw=luma) if cap.grab() else None
+        except cv2.error:
+            return None
+        finally:
+            cap.release()
+    return luma_range(first[True], first[False])
+
+
+@contextlib.contextmanager
+def _quiet_opencv():
+    """OpenCV's warnings off (its errors still shown), the log level restored after."""
+    try:
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    except (AttributeError, cv2.error):
+        level = None
+    try:
+        yield
+    finally:
+        if level is not None:
+            cv2.utils.logging.setLogLevel(level)
 
 
 def _exts(exts) -> str:

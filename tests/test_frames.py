@@ -1,6 +1,8 @@
 """The one frame reader: image-sequence times (--fps, timestamp names), videos, scaling."""
 
 import itertools
+import subprocess
+import sys
 import threading
 from pathlib import Path
 
@@ -13,9 +15,11 @@ from conftest import SAMPLE, assert_one_line_error
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
 from mirage_cli.frames import (
+    LUMA_TOLERANCE,
     Frame,
     FrameSource,
     gray_frames,
+    luma_range,
     matching_camera,
     name_times,
     prefetch,
@@ -167,3 +171,93 @@ def test_prefetch_closed_early_stops_and_closes_the_reader():
     frames.close()  # the consumer stopped (an interrupt, an error downstream)
     assert closed.wait(5.0)
     assert not any(t.name == "mirage-decode" and t.is_alive() for t in threading.enumerate())
+
+
+def orbit_video(path: Path, fourcc: str, n: int = 12, size=(96, 72), first=None) -> Path:
+    """The sample orbit's first `n` frames, resized, written with `fourcc` (a test video of
+    another pixel format: MJPG full-range yuvj420p, FFV1 BGRA, HFYU BGR); `first`
+    replaces the first frame."""
+    cap = cv2.VideoCapture(str(SAMPLE / "orbit.mp4"))
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), 30, size)
+    assert out.isOpened()
+    for i in range(n):
+        ok, img = cap.read()
+        assert ok
+        out.write(first if i == 0 and first is not None else cv2.resize(img, size))
+    out.release()
+    cap.release()
+    return path
+
+
+def gray_diff(a: list[Frame], b: list[Frame]) -> list[float]:
+    assert [(f.index, f.id, f.time_s) for f in a] == [(f.index, f.id, f.time_s) for f in b]
+    assert [f.image is None for f in a] == [f.image is None for f in b]
+    return [
+        float(np.abs(x.image.astype(int) - y.image).mean())
+        for x, y in zip(a, b, strict=True)
+        if x.image is not None
+    ]
+
+
+def test_gray_from_the_luma_plane_is_bgr2gray_with_the_same_frames():
+    """The sample video (yuv420p, video range) is grayed from its luma plane: within two
+    grey levels of BGR2GRAY on every frame; --start / --every / --end pick the same frame
+    ids and times as the colour path."""
+    src = FrameSource([SAMPLE / "orbit.mp4"])
+    assert src.luma_mode() == "limited"
+    fast = list(src.frames(0, 40, luma=True))
+    assert all(f.image.dtype == np.uint8 and f.image.shape == (480, 640) for f in fast)
+    diff = gray_diff(fast, list(src.frames(0, 40, gray=True)))
+    assert len(diff) == 40 and max(diff) <= LUMA_TOLERANCE, diff
+    fast = list(src.frames(start=7, end=100, every=5, luma=True))
+    colour = list(src.frames(start=7, end=100, every=5))
+    assert [f.id for f in fast] == list(range(7, 100, 5))
+    assert max(gray_diff(fast, list(gray_frames(iter(colour))))) <= LUMA_TOLERANCE
+
+
+def test_video_whose_luma_is_not_its_gray_falls_back_to_bgr(tmp_path):
+    """Packed BGR / BGRA videos (HFYU, FFV1) fail the first-frame check and are grayed by
+    BGR2GRAY, pixel for pixel as before; full-range MJPEG passes as it is; a first frame of
+    uniform grey cannot tell the ranges apart: BGR2GRAY."""
+    for fourcc in ("HFYU", "FFV1"):
+        src = FrameSource([orbit_video(tmp_path / f"{fourcc}.avi", fourcc)])
+        assert src.luma_mode() is None, fourcc
+        assert max(gray_diff(list(src.frames(luma=True)), list(src.frames(gray=True)))) == 0
+    src = FrameSource([orbit_video(tmp_path / "mjpg.avi", "MJPG")])
+    assert src.luma_mode() == "full"
+    assert max(gray_diff(list(src.frames(luma=True)), list(src.frames(gray=True)))) <= 2
+    flat = np.full((72, 96, 3), 113, np.uint8)
+    src = FrameSource([orbit_video(tmp_path / "flat.avi", "MJPG", first=flat)])
+    assert src.luma_mode() is None
+    bgr = cv2.imread(str(SAMPLE / "keyframes" / "kf_000.jpg"))
+    y = cv2.cvtColor(bgr, cv2.COLOR_BGR2YUV)[..., 0]
+    assert luma_range(y, bgr) == "full"
+    assert luma_range(y.astype(np.uint16), bgr) is None  # 10-bit planes
+    assert luma_range(y[:, :-1], bgr) is None and luma_range(None, bgr) is None
+
+
+def test_damaged_video_stretch_on_the_luma_path(tmp_path):
+    """Damaged bytes mid-video: the luma path reports the same undecodable frames as the
+    colour path and decodes on after them."""
+    data = bytearray((SAMPLE / "orbit.mp4").read_bytes())
+    a = len(data) // 6
+    data[a : a + 100_000] = np.random.default_rng(0).integers(0, 256, 100_000, np.uint8).tobytes()
+    (tmp_path / "damaged.mp4").write_bytes(bytes(data))
+    src = FrameSource([tmp_path / "damaged.mp4"])
+    fast = list(src.frames(0, 200, every=3, luma=True))
+    assert 0 < sum(f.image is None for f in fast) < len(fast) // 4
+    assert fast[-1].image is not None
+    assert max(gray_diff(fast, list(src.frames(0, 200, every=3, gray=True)))) <= LUMA_TOLERANCE
+
+
+def test_luma_path_says_nothing_on_stderr():
+    """OpenCV warns twice of a capture with BGR conversion off ("at your own risk",
+    "unsupported picture format"): the luma path silences both and restores the level
+    (`mirage track`'s own stderr: test_track's damaged-video test)."""
+    code = (
+        "import cv2; from mirage_cli.frames import FrameSource as S; "
+        f"n = len(list(S([r'{SAMPLE / 'orbit.mp4'}']).frames(3, 30, 4, luma=True))); "
+        "print(n, cv2.utils.logging.getLogLevel())"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert p.returncode == 0 and p.stdout.split() == ["7", "3"] and p.stderr == "", p.stderr

@@ -146,6 +146,11 @@ def track(job: TrackJob, reporter: Reporter = SILENT) -> TrackResult:
     the overlay and the Rerun recording) as it comes, `job.smooth.lag` frames late.
     Ctrl-C or SIGTERM keeps the finished frames in every output and comes back as the
     result's `interrupted`, for the caller to raise once it has said what was kept."""
+    # OpenCV's RNG (a thread's own) as a new process has it: the model's KD-tree index is
+    # randomized from it, so a run after others in one process (`batch` serially) matched
+    # otherwise than a fresh one (9th digit of a pose, gray from luma on a flight of the
+    # sample); 0 is RNG's default state
+    cv2.setRNGSeed(0)
     warm_up_solver(reporter)
     runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
     points = job.tracker.model.points
@@ -189,6 +194,9 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
             rrd = stack.enter_context(TrackRecording(job.rerun, tracker.model, camera))
         bar = stack.enter_context(reporter.progress(total, "tracking"))
         keep = ov is not None or rrd is not None  # the overlays draw on the colour image
+        # decoded (and grayed, without overlays) in the reader thread, a few frames ahead; not
+        # from the luma plane (frames(luma=True)) until the overlays' runs can track the same
+        # gray: --overlay must not change the poses (test_deterministic_with_overlay)
         frames = src.frames(job.first, job.last, job.every)
         frames = prefetch(frames if keep else gray_frames(frames))
 
