@@ -112,15 +112,16 @@ def scene(name: str, seconds: float, jobs: int) -> tuple[Path, Path, Path]:
     return folder, kf, folder / "camera_truth.yaml"
 
 
-def model_for(keyframes: Path) -> tuple[Path, float, float]:
-    """The keyframes' model, built with their own camera (cached) and its build's wall
-    seconds and peak MB."""
+def model_for(keyframes: Path, spacing: str | None) -> tuple[Path, float, float]:
+    """The keyframes' model, built with their own camera and every keyframe kept
+    (`--spacing-deg` their step), cached; and its build's wall seconds and peak MB."""
     name = keyframes.parent.name if keyframes.parent != stress.SAMPLE else "sample"
     path = stress.CACHE / f"tp-model-{name}.mirage"
     stats = path.with_suffix(".build")
     if not stats.is_file():
         argv = ["build-model", str(keyframes), "--poses", str(keyframes / "poses.csv")]
         argv += ["--camera", str(keyframes.parent / "camera_truth.yaml"), "-o", str(path)]
+        argv += ["--spacing-deg", spacing] if spacing else []
         _, wall, mb = run_cli(ROOT, argv)
         stats.write_text(f"{wall} {mb}\n")
     wall, mb = (float(v) for v in stats.read_text().split())
@@ -219,7 +220,8 @@ def main() -> None:
 
 def _row(name: str, args, roots: list[Path]) -> None:
     video, kf, cam = scene(name, args.seconds, args.jobs)
-    model, build_s, build_mb = model_for(kf)
+    kfs = name.partition("@")[2]
+    model, build_s, build_mb = model_for(kf, MODELS[int(kfs)] if kfs else None)
     truth = read_pose_csv(video / "orbit_truth.csv")
     runs = {r: [] for r in roots}
     for _ in range(max(1, args.repeats)):
