@@ -19,7 +19,8 @@ import os
 _M_TRIM_THRESHOLD = -1  # glibc's mallopt parameters (malloc.h)
 _M_MMAP_THRESHOLD = -3
 MMAP_THRESHOLD = 32 << 20  # glibc's largest on 64-bit: smaller blocks come from the heap
-TRIM_THRESHOLD = 256 << 20  # free memory the heap keeps before giving it back
+TRIM_THRESHOLD = 64 << 20  # free memory the heap keeps before giving it back (256 MB
+# held a 1080p run at 704 MB peak, 64 MB at 648 MB, the same frames/s)
 
 _applied: bool | None = None
 
