@@ -39,22 +39,27 @@ def blas_in_calling_thread() -> None:
             os.environ[var] = "1"
 
 
+def _mallopt():
+    """glibc's `mallopt` (None where the C library has none: macOS, Windows)."""
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError, TypeError):
+        return None
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return mallopt
+
+
 def keep_freed_memory() -> bool:
     """Tell glibc's malloc to reuse freed memory instead of returning it to the kernel
     (once per process). False where the C library has no `mallopt` (macOS, Windows) or
     refuses the values: the allocator's defaults then stay."""
     global _applied
     if _applied is None:
-        try:
-            mallopt = ctypes.CDLL(None).mallopt
-        except (OSError, AttributeError, TypeError):
-            _applied = False
-        else:
-            mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-            _applied = bool(
-                mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
-                and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
-            )
+        mallopt = _mallopt()
+        _applied = mallopt is not None and bool(
+            mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)
+            and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)
+        )
     return _applied
 
 
@@ -63,12 +68,8 @@ def return_freed_memory() -> bool:
     stage (`build-model`): blocks of 1 MB and more from the kernel and back to it when
     freed, so the heap does not grow with each stage's leftovers (144 keyframes: 800 ->
     710 MB peak). False where the C library has no `mallopt`."""
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError, TypeError):
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, 1 << 20))
+    mallopt = _mallopt()
+    return mallopt is not None and bool(mallopt(_M_MMAP_THRESHOLD, 1 << 20))
 
 
 def opencv_threads_for_two_callers() -> int:

@@ -126,7 +126,7 @@ class FlowTracking:
             p0r, st2, _ = cv2.calcOpticalFlowPyrLK(B, A, p1, a.copy(), **lk)
         except cv2.error:
             return None
-        # back to the frame's pixels; the forward-backward check in the flowed image's
+        # the forward-backward check in the flowed image's pixels; the points in the frame's
         fb = np.linalg.norm(p0r.reshape(-1, 2) - a.reshape(-1, 2), axis=1)
         p1 = p1.reshape(-1, 2) * np.float32(f) + off
         h, w = gray.shape[:2]
