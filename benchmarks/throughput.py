@@ -204,7 +204,7 @@ def main() -> None:
     for n in names:
         res, _, kfs = n.partition("@")
         h, _, cond = res.partition("-")
-        if h not in HEIGHTS or cond not in CONDITIONS or (kfs and int(kfs) not in MODELS):
+        if h not in HEIGHTS or cond not in CONDITIONS or (kfs and kfs not in map(str, MODELS)):
             ap.error(f"unknown scene {n!r}")
     roots = [ROOT] + ([args.against.resolve()] if args.against else [])
     print(f"throughput, {args.seconds:g} s videos; median of {args.repeats} run(s)\n")
