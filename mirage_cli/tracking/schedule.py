@@ -100,6 +100,13 @@ class DetectionSchedule:
         for key in [k for k in self._pending if k[1] in kinds]:
             self._pending.pop(key).cancel()
 
+    def cancel_pending(self) -> None:
+        """The run ended or was interrupted: the detections queued ahead are not started.
+        The interpreter's exit joins the worker, which would first run every search queued
+        for frames that will never come (an interrupted run waited for them)."""
+        self._drop(*{kind for _, kind in self._pending})
+        self._held_box = None
+
     def _start(self, frame_no: int, kind: str, fn, gray, *args) -> None:
         if self._bg_detector is None:
             self._bg_detector = make_detector(self.model.detector)

@@ -311,15 +311,18 @@ def track_frames(
             rec.image = f.image
         return rec
 
-    for f in frames:
-        signals.check()  # a signal a compiled-code callback swallowed: the interrupt now
-        gray = None
-        if f.image is not None:
-            gray = to_gray(f.image)
-            if gray.shape[::-1] != size:
-                gray = None
-        queue.append((f, gray))
-        if len(queue) > k:
+    try:
+        for f in frames:
+            signals.check()  # a signal a compiled-code callback swallowed: the interrupt now
+            gray = None
+            if f.image is not None:
+                gray = to_gray(f.image)
+                if gray.shape[::-1] != size:
+                    gray = None
+            queue.append((f, gray))
+            if len(queue) > k:
+                yield step()
+        while queue:
             yield step()
-    while queue:
-        yield step()
+    finally:
+        tracker.cancel_pending()  # interrupted or closed early: no detections left queued
