@@ -1120,6 +1120,29 @@ def signals_code(sig) -> int:
     return {signal.SIGINT: 130, signal.SIGTERM: 143}[sig]
 
 
+def test_an_interrupted_run_ends_though_a_thread_never_does():
+    """After its interrupt line, a run whose exit would wait on a thread that never ends
+    (a library's worker stuck in a job) still ends, with the signal's code, once the
+    grace period is over; without the grace it hangs until the test kills it."""
+    code = (
+        "import threading, sys; from mirage_cli import cli\n"
+        "threading.Thread(target=threading.Event().wait).start()\n"
+        "cli.EXIT_GRACE_S = {grace}\n"
+        "def stop(argv): raise KeyboardInterrupt\n"
+        "cli._invoke = stop\n"
+        "cli.main(['track'])\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    t0 = time.monotonic()
+    p = subprocess.run([sys.executable, "-c", code.format(grace=0.5)], env=env,
+                       capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert (p.returncode, p.stderr.strip()) == (130, "mirage: interrupted (SIGINT)")
+    assert time.monotonic() - t0 < 30
+    with pytest.raises(subprocess.TimeoutExpired):  # the grace is what ends it
+        subprocess.run([sys.executable, "-c", code.format(grace=1e6)], env=env,
+                       capture_output=True, timeout=8)  # fmt: skip
+
+
 def test_a_swallowed_signal_still_interrupts(monkeypatch):
     """A signal whose exception a compiled-code callback dropped is raised at the next
     check (before the next frame, after the kernels load, before `main` says 0)."""

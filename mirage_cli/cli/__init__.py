@@ -11,6 +11,7 @@ import errno
 import importlib
 import os
 import sys
+import threading
 import traceback
 from collections.abc import Mapping
 
@@ -169,7 +170,29 @@ def main(argv: list[str] | None = None) -> None:
             fileio.cleanup_temps()
     except KeyboardInterrupt as e:
         code = _report(e)
+    if code in signals.EXIT_CODES.values():
+        _exit_within(EXIT_GRACE_S, code)
     sys.exit(code)
+
+
+EXIT_GRACE_S = 20.0
+
+
+def _exit_within(seconds: float, code: int) -> None:
+    """An interrupted run has kept what it could and said so: it must now end. Python's
+    exit joins every thread a library started (a worker finishing its job, or one that
+    never returns: a CI run once printed its interrupt line and hung), so past `seconds`
+    the process ends with the interrupt's code, without waiting for them."""
+
+    def force() -> None:
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+
+    timer = threading.Timer(seconds, force)
+    timer.daemon = True
+    timer.start()
 
 
 def _invoke(argv: list[str]) -> int:
