@@ -1,6 +1,7 @@
 """`mirage track` on the sample orbit: accuracy against truth, honest lost frames, errors."""
 
 import shutil
+import threading
 import time
 from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -647,3 +648,26 @@ def test_a_sharper_camera_than_the_models_flows_as_often(sample_model):
     detected = sum(r.mode != "flow" for r in recs)
     assert detected <= 25, detected
     assert tracker.px_scale > 1.5 and tracker.settings.max_ok_rmse_px > 3.0
+
+
+def test_the_kernels_load_early_and_a_failure_there_is_not_lost(monkeypatch):
+    """`mirage track` loads the compiled kernels on a thread while the model and video
+    open; the solver's first use waits for it, and an error there is raised then (not
+    printed by a thread and forgotten)."""
+    from mirage_cli.pipelines import track as pipeline
+
+    loaded = []
+    monkeypatch.setattr(pipeline.refine, "cached_on_disk", lambda: True)
+    monkeypatch.setattr(pipeline, "warm_up", lambda: loaded.append(threading.current_thread()))
+    pipeline.start_warm_up()
+    pipeline.warm_up_solver()
+    assert loaded[0] is not threading.main_thread() and loaded[1] is threading.main_thread()
+
+    def broken():
+        raise RuntimeError("LLVM could not link the solver")
+
+    monkeypatch.setattr(pipeline, "warm_up", broken)
+    pipeline.start_warm_up()
+    with pytest.raises(RuntimeError, match="could not link"):
+        pipeline.warm_up_solver()
+    assert not pipeline._early

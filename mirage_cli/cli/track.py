@@ -10,7 +10,7 @@ import numpy as np
 from ..fileio import check_writable, refuse_overwrite, require_file
 from ..frames import FrameSource, with_topic
 from ..model import LandmarkModel
-from ..pipelines.track import TrackResult, nothing_found, open_job
+from ..pipelines.track import TrackResult, nothing_found, open_job, start_warm_up
 from ..pipelines.track import track as run_track
 from ..records import Status
 from ..solver import METHODS
@@ -140,6 +140,7 @@ def track_cmd(
     if rerun_path:
         rerun_module()  # without the [viz] extra: one line now, not after the tracking
         check_room(rerun_path)
+    start_warm_up()  # the compiled kernels load while the model and the video open
     with ui.stage("load model"):
         model = LandmarkModel.load(require_file(model_path, "model file"))
     ui.detail(f"model {model_path}: {len(model.keyframes)} keyframes, {len(model.points)} points")

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -127,10 +128,36 @@ def tracked_records(
     return smoothed(track_frames(frames, tracker, keep_images), smoothing or SmoothSettings())
 
 
+_early: dict = {}
+
+
+def start_warm_up() -> None:
+    """Load the compiled kernels from numba's cache on a thread of their own while the
+    model and the video open: 9 kernels at ~45 ms each, mostly LLVM's linking with the
+    GIL released, were the largest part of the wait for the first pose. A signal meanwhile
+    interrupts the main thread as ever (the loads' callbacks run on this thread, where
+    they cannot swallow it). Not on a first run: the compile is announced, then done."""
+    if refine.cached_on_disk() and "thread" not in _early:
+        _early["thread"] = threading.Thread(target=_warm_early, name="mirage-warm-up")
+        _early["thread"].start()
+
+
+def _warm_early() -> None:
+    try:
+        warm_up()
+    except Exception as e:  # noqa: BLE001 - raised where the solver is first needed
+        _early["error"] = e
+
+
 def warm_up_solver(reporter: Reporter = SILENT) -> None:
     """Compile or load the pose solver before the first frame's clock starts; loading from
     the cache (under a second) runs numba's callbacks, which would swallow a signal: held
-    meanwhile."""
+    meanwhile. A load begun early (`start_warm_up`) is waited for."""
+    early = _early.pop("thread", None)
+    if early is not None:
+        early.join()
+        if "error" in _early:
+            raise _early.pop("error")
     if not refine.cached_on_disk():
         reporter.echo("compiling the pose solver for this machine (first run only, about 10 s)")
     with (
