@@ -19,7 +19,13 @@ def run() -> None:
             raise
         print(signals.message(intr), file=sys.stderr)
         sys.exit(signals.exit_code(intr))
-    main()
+    from .cli import end_within_grace
+
+    try:
+        main()
+    except SystemExit as e:
+        end_within_grace(e.code)  # interrupted: Python's exit may not wait on threads
+        raise
 
 
 if __name__ == "__main__":

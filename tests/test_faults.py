@@ -18,6 +18,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -1123,14 +1124,17 @@ def signals_code(sig) -> int:
 def test_an_interrupted_run_ends_though_a_thread_never_does():
     """After its interrupt line, a run whose exit would wait on a thread that never ends
     (a library's worker stuck in a job) still ends, with the signal's code, once the
-    grace period is over; without the grace it hangs until the test kills it."""
+    grace period is over; without the grace it hangs until the test kills it. Only the
+    process's own entry point does this: `main` called in-process (tests, scripts) never
+    ends its caller's process."""
     code = (
         "import threading, sys; from mirage_cli import cli\n"
         "threading.Thread(target=threading.Event().wait).start()\n"
         "cli.EXIT_GRACE_S = {grace}\n"
         "def stop(argv): raise KeyboardInterrupt\n"
         "cli._invoke = stop\n"
-        "cli.main(['track'])\n"
+        "sys.argv = ['mirage', 'track']\n"
+        "from mirage_cli.__main__ import run; run()\n"
     )
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     t0 = time.monotonic()
@@ -1141,6 +1145,22 @@ def test_an_interrupted_run_ends_though_a_thread_never_does():
     with pytest.raises(subprocess.TimeoutExpired):  # the grace is what ends it
         subprocess.run([sys.executable, "-c", code.format(grace=1e6)], env=env,
                        capture_output=True, timeout=8)  # fmt: skip
+
+
+def test_an_interrupt_in_process_leaves_the_callers_process_alone(monkeypatch):
+    """`main` called in-process (a test, a script) and interrupted exits 130 to its caller
+    and starts nothing that would end the caller's process later (a 20 s timer that
+    did so killed the test suite mid-run)."""
+
+    def stop(argv):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_invoke", stop)
+    before = set(threading.enumerate())
+    with own_signal_handlers(), pytest.raises(SystemExit) as e:
+        cli.main(["track"])
+    assert e.value.code == 130
+    assert set(threading.enumerate()) <= before
 
 
 def test_a_swallowed_signal_still_interrupts(monkeypatch):

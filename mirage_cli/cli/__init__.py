@@ -170,19 +170,20 @@ def main(argv: list[str] | None = None) -> None:
             fileio.cleanup_temps()
     except KeyboardInterrupt as e:
         code = _report(e)
-    if code in signals.EXIT_CODES.values():
-        _exit_within(EXIT_GRACE_S, code)
     sys.exit(code)
 
 
 EXIT_GRACE_S = 20.0
 
 
-def _exit_within(seconds: float, code: int) -> None:
-    """An interrupted run has kept what it could and said so: it must now end. Python's
+def end_within_grace(code) -> None:
+    """The process is ending after an interrupt (`__main__.run`, never an in-process
+    caller of `main`): it has kept what it could and said so, and must now end. Python's
     exit joins every thread a library started (a worker finishing its job, or one that
-    never returns: a CI run once printed its interrupt line and hung), so past `seconds`
-    the process ends with the interrupt's code, without waiting for them."""
+    never returns: a CI run once printed its interrupt line and hung), so past
+    `EXIT_GRACE_S` the process ends with the interrupt's code, without waiting for them."""
+    if code not in signals.EXIT_CODES.values():
+        return
 
     def force() -> None:
         with contextlib.suppress(Exception):
@@ -190,7 +191,7 @@ def _exit_within(seconds: float, code: int) -> None:
             sys.stderr.flush()
         os._exit(code)
 
-    timer = threading.Timer(seconds, force)
+    timer = threading.Timer(EXIT_GRACE_S, force)
     timer.daemon = True
     timer.start()
 
