@@ -138,15 +138,22 @@ def start_warm_up() -> None:
     interrupts the main thread as ever (the loads' callbacks run on this thread, where
     they cannot swallow it). Not on a first run: the compile is announced, then done."""
     if refine.cached_on_disk() and "thread" not in _early:
-        _early["thread"] = threading.Thread(target=_warm_early, name="mirage-warm-up")
+        _early["thread"] = _WarmUp()
         _early["thread"].start()
 
 
-def _warm_early() -> None:
-    try:
-        warm_up()
-    except Exception as e:  # noqa: BLE001 - raised where the solver is first needed
-        _early["error"] = e
+class _WarmUp(threading.Thread):
+    """`warm_up` on its own thread; its error kept for the thread that waits for it."""
+
+    def __init__(self) -> None:
+        super().__init__(name="mirage-warm-up")
+        self.error: Exception | None = None
+
+    def run(self) -> None:
+        try:
+            warm_up()
+        except Exception as e:  # noqa: BLE001 - raised where the solver is first needed
+            self.error = e
 
 
 def warm_up_solver(reporter: Reporter = SILENT) -> None:
@@ -156,8 +163,8 @@ def warm_up_solver(reporter: Reporter = SILENT) -> None:
     early = _early.pop("thread", None)
     if early is not None:
         early.join()
-        if "error" in _early:
-            raise _early.pop("error")
+        if early.error is not None:
+            raise early.error
     if not refine.cached_on_disk():
         reporter.echo("compiling the pose solver for this machine (first run only, about 10 s)")
     with (
