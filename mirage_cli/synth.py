@@ -164,6 +164,9 @@ def landmark_scene(
         Cylinder("cylinder", cyl["center"], cyl["radius"], *cyl["z"], cyl_texel, tex, light=LIGHT)
     )
     d = int(2 * cyl["radius"] / TEXEL_M)
+    cap = random_texture(stable_rng(seed, "cap"), d, d)
+    if weak:
+        cap = weak_texture(stable_rng(seed, "cap-weak"), cap)
     surfaces.append(
         Disk(
             "cylinder-top",
@@ -171,9 +174,7 @@ def landmark_scene(
             cyl["radius"],
             cyl["z"][1],
             TEXEL_M,
-            (weak_texture if weak else lambda _r, t: t)(
-                stable_rng(seed, "cap-weak"), random_texture(stable_rng(seed, "cap"), d, d)
-            ),
+            cap,
             _shade(np.array([0, 0, 1])),
         )
     )

@@ -135,9 +135,9 @@ def start_warm_up() -> None:
     """Load the compiled kernels from numba's cache on a thread of their own while the
     model and the video open: 9 kernels at ~45 ms each, mostly LLVM's linking with the
     GIL released, are 0.4 s of the 1.8 s wait for a first pose (144 keyframes; the
-    imports are 0.9 s), 0.1 s less this way. A signal meanwhile
-    interrupts the main thread as ever (the loads' callbacks run on this thread, where
-    they cannot swallow it). Not on a first run: the compile is announced, then done."""
+    imports are 0.9 s), 0.1 s less this way. A signal meanwhile interrupts the main
+    thread as ever (the loads' callbacks run on this thread, where they cannot swallow
+    it). Not on a first run: the compile is announced, then done."""
     if refine.cached_on_disk() and "thread" not in _early:
         _early["thread"] = _WarmUp()
         _early["thread"].start()
