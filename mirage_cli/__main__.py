@@ -19,12 +19,13 @@ def run() -> None:
             raise
         print(signals.message(intr), file=sys.stderr)
         sys.exit(signals.exit_code(intr))
-    from .cli import end_within_grace
+    from .cli import end_within_grace, exit_without_teardown
 
     try:
         main()
     except SystemExit as e:
         end_within_grace(e.code)  # interrupted: Python's exit may not wait on threads
+        exit_without_teardown(e.code)
         raise
 
 

@@ -28,7 +28,7 @@ from ..model import LandmarkModel
 from ..plotting import draw_overlay
 from ..records import FrameRecord, Status
 from ..tracking import Tracker, TrackSettings, track_frames, warm_up
-from ..tracking.smooth import Smoother, SmoothSettings, smoothed
+from ..tracking.smooth import Smoother, SmoothSettings, lapack_band_solvers, smoothed
 from ..trajectory import TRACK_COLUMNS, TrajectoryWriter
 from ..validate import When, frame_range
 from ..viewer import TrackRecording
@@ -153,6 +153,7 @@ class _WarmUp(threading.Thread):
     def run(self) -> None:
         try:
             warm_up()
+            lapack_band_solvers()  # the smoother's scipy.linalg, imported here too
         except Exception as e:  # noqa: BLE001 - raised where the solver is first needed
             self.error = e
 

@@ -39,7 +39,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-import scipy.linalg.lapack
 
 from ..pose import Pose, rodrigues_many, rotvecs
 from ..records import FrameRecord, Measurement, Reason, Status
@@ -103,7 +102,16 @@ _A = np.hstack([np.eye(6), -2 * np.eye(6), np.eye(6)])  # second difference of 3
 GN_STEPS = 1  # corrections are millimetres and tenths of a degree: a second step moves
 # the 4 m orbit's median error by 0.0003% of range and costs 1.2 ms a frame
 _BAND = 17  # H couples frames two apart: 6 x 2 + 5 sub-diagonals
-_pbsv, _pbtrs = scipy.linalg.lapack.dpbsv, scipy.linalg.lapack.dpbtrs
+
+
+@lru_cache(maxsize=1)
+def lapack_band_solvers():
+    """LAPACK's banded Cholesky (dpbsv, dpbtrs), imported when first needed: importing
+    scipy.linalg is 0.15 s of `mirage track`'s start, done on the warm-up thread
+    (`pipelines.track.start_warm_up`) while the model loads."""
+    from scipy.linalg import lapack
+
+    return lapack.dpbsv, lapack.dpbtrs
 
 
 @lru_cache(maxsize=64)  # one entry per window length (up to 2 lag + 1)
@@ -169,7 +177,8 @@ def _step(use, Rm, cm, W, R, c, prior, P):
     ab[row, col] = blocks.ravel()[src]
     if not (np.all(np.isfinite(ab)) and np.all(np.isfinite(g2))):
         return None, None
-    factor, d, err = _pbsv(ab, g2.ravel(), lower=1)
+    pbsv, _ = lapack_band_solvers()
+    factor, d, err = pbsv(ab, g2.ravel(), lower=1)
     if err != 0:
         return None, None
     return d.reshape(n, 6), factor
@@ -230,7 +239,8 @@ def smooth_window(window: list[WorldMeasurement | None], k: int, dt: float, s: S
         return None
     E = np.zeros((6 * n, 6))
     E[6 * k : 6 * k + 6] = np.eye(6)
-    cov, err = _pbtrs(factor, E, lower=1)  # the step's factor: H did not change since
+    _, pbtrs = lapack_band_solvers()
+    cov, err = pbtrs(factor, E, lower=1)  # the step's factor: H did not change since
     if err != 0:
         return None
     cov = cov[6 * k : 6 * k + 6]
