@@ -211,7 +211,7 @@ def main() -> None:
     print(
         "| scene | frames/s | wall s | first pose s | peak MB | full detections % of in "
         "view / steady | tracked in view % | median error mm | wrong | peer frames/s | ratio |"
-        + (" vs --against |" if args.against else "")
+        + (" vs --against: frames/s ratio, its first pose s |" if args.against else "")
     )
     print("|---" * (11 + bool(args.against)) + "|")
     for name in names:
@@ -241,7 +241,8 @@ def _row(name: str, args, roots: list[Path]) -> None:
     )
     if args.against:
         pair = [a["fps"] / b["fps"] for a, b in zip(runs[ROOT], runs[roots[1]], strict=True)]
-        line += f" {np.median(pair):.2f}x |"
+        first = np.median([b["first"] for b in runs[roots[1]]])
+        line += f" {np.median(pair):.2f}x, {first:.2f} s |"
     print(line, flush=True)
 
 
