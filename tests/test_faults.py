@@ -1183,6 +1183,19 @@ def test_the_process_exit_skips_only_the_teardown(tmp_path):
     assert p.returncode == 3 and ran == {".thread", ".atexit", ".teardown"}
 
 
+def test_a_profiled_run_still_writes_its_profile(tmp_path):
+    """Under a profiler the exit is Python's own: cProfile writes its results after the
+    program returns, which the exit without teardown would skip."""
+    out = tmp_path / "mirage.prof"
+    p = subprocess.run(
+        [sys.executable, "-m", "cProfile", "-o", str(out), "-m", "mirage_cli", "--version"],
+        env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert p.returncode == 0 and __version__ in p.stdout
+    assert out.stat().st_size > 0
+
+
 def test_an_interrupt_in_process_leaves_the_callers_process_alone(monkeypatch):
     """`main` called in-process (a test, a script) and interrupted exits 130 to its caller
     and starts nothing that would end the caller's process later (a 20 s timer that

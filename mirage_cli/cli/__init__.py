@@ -205,9 +205,12 @@ def exit_without_teardown(code) -> None:
     pose, for nothing the command needs done. The first two are done here as Python does
     them; the rest is the OS's. Commands close what they write (atomic writes, released
     video writers, Rerun flushed), so nothing waits on a destructor. Where this Python has
-    no thread-shutdown hook it returns, and the exit is Python's own."""
+    no thread-shutdown hook, or under a profiler or debugger (`python -m cProfile -m
+    mirage_cli` writes its results once the program returns), it returns, and the exit is
+    Python's own."""
     shutdown = getattr(threading, "_shutdown", None)
-    if not isinstance(code, int) or shutdown is None:
+    watched = sys.getprofile() is not None or sys.gettrace() is not None
+    if not isinstance(code, int) or shutdown is None or watched:
         return
     try:
         shutdown()  # joins the worker threads (their executors' exit hooks first)
