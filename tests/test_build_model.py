@@ -14,7 +14,7 @@ from conftest import SAMPLE, assert_one_line_error, run_mirage
 from mirage_cli.build_model import ROI, select_keyframes, triangulate
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
-from mirage_cli.model import LandmarkModel, azimuth_gaps, ground_points, point_twins
+from mirage_cli.model import LandmarkModel, azimuth_gaps, ground_points, make_thumbnail, point_twins
 from mirage_cli.model_index import DescriptorIndex
 from mirage_cli.pose import Pose, look_at
 from mirage_cli.synth import LANDMARK_BOUNDS, landmark_surface_distance
@@ -160,8 +160,17 @@ def test_descriptors_are_memory_mapped_and_cast_when_used(built, tmp_path):
     """Loading reads no descriptor: they stay in the file (stored, not compressed) until a
     keyframe is matched, then come back as the detector's dtype, unchanged."""
     with zipfile.ZipFile(built[0]) as z:
-        assert z.getinfo("descriptors.npy").compress_type == zipfile.ZIP_STORED
+        for name in ("descriptors", "recognition_index", "thumbnails"):
+            assert z.getinfo(f"{name}.npy").compress_type == zipfile.ZIP_STORED, name
     model = LandmarkModel.load(built[0])
+    index = model.tables["recognition_index"]  # the KD-trees too: mapped, loaded as stored
+    assert isinstance(index, np.memmap) and len(index) > 0
+    model.prepare_recognition()
+    assert model._index[0].loaded
+    kf = model.keyframes[3]
+    grey = cv2.imread(str(KF / kf.name), cv2.IMREAD_GRAYSCALE)
+    assert isinstance(kf.thumbnail.base, np.memmap) or isinstance(kf.thumbnail, np.memmap)
+    assert np.array_equal(kf.thumbnail, make_thumbnail(grey))
     kf = model.keyframes[5]
     raw = kf.__dict__["_descriptors"]
     assert isinstance(raw, np.memmap) and raw.dtype == np.uint8
