@@ -174,6 +174,7 @@ def warm_up_solver(reporter: Reporter = SILENT) -> None:
         signals.deferred() if refine.cached_on_disk() else contextlib.nullcontext(),
     ):
         warm_up()
+        lapack_band_solvers()  # (imported on the early thread, else here: not in frame 1)
     signals.check()
 
 
