@@ -176,9 +176,9 @@ class KeyframeRecognition:
         if len(descriptors) == 0 or not self.keyframes:
             return []
         index = self._tilted_index if tilted else self._index
-        if index is None:  # (the tilted views' index: built when a relocalisation needs it)
+        if index is None:  # (the tilted views' index: loaded when a relocalisation needs it)
             index = self._build_index(
-                tilted, None if tilted else self.tables.get("recognition_index")
+                tilted, self.tables.get("tilt_recognition_index" if tilted else "recognition_index")
             )
         search, owner, pids = index
         if search is None:
@@ -368,6 +368,12 @@ class LandmarkModel(KeyframeRecognition):
         self.prepare_recognition()  # after the twins: the trees `track` built from them
         search = self._index[0]
         tables["recognition_index"] = search.to_bytes() if search else np.zeros(0, np.uint8)
+        if self.has_tilted:  # the squashed views' trees: `track` built them at its first
+            # relocalisation, inside the tracking (0.9 s for 144 keyframes); now here, once
+            search = (self._tilted_index or self._build_index(True))[0]
+            tables["tilt_recognition_index"] = (
+                search.to_bytes() if search else np.zeros(0, np.uint8)
+            )
         return tables
 
     def _tilted_arrays(self, dim: int) -> dict[str, np.ndarray]:
@@ -601,13 +607,19 @@ def _azimuth_steps(azimuths_deg) -> tuple[np.ndarray, np.ndarray]:
 
 # what a model file may hold besides its keyframes and points (`_table_arrays`); a file
 # without them (made before) gets them built when first needed
-_TABLES = ("twins", "ground", "recognition_index")
+_TABLES = ("twins", "ground", "recognition_index", "tilt_recognition_index")
 
 # arrays stored uncompressed and memory-mapped at load: a keyframe's descriptors are read
 # when it is first matched (SIFT's bytes compress to 80%: not worth inflating at every load);
 # the KD-trees (13 MB deflated to 4 for 144 keyframes: 70 ms of every start to inflate)
 # and the thumbnails (the viewer's only) likewise
-_MAPPED = {"descriptors.npy", "tilt_descriptors.npy", "recognition_index.npy", "thumbnails.npy"}
+_MAPPED = {
+    "descriptors.npy",
+    "tilt_descriptors.npy",
+    "recognition_index.npy",
+    "tilt_recognition_index.npy",
+    "thumbnails.npy",
+}
 
 
 def _read_array(z: zipfile.ZipFile, path, name: str, info: dict, hint: str) -> np.ndarray:
