@@ -366,14 +366,18 @@ class LandmarkModel(KeyframeRecognition):
         `mirage track` start: the twins and ground tables and the recognition KD-trees."""
         tables = {"twins": self.twins().astype(np.uint8), "ground": self.ground().astype(np.uint8)}
         self.prepare_recognition()  # after the twins: the trees `track` built from them
-        search = self._index[0]
-        tables["recognition_index"] = search.to_bytes() if search else np.zeros(0, np.uint8)
+        tables["recognition_index"] = _index_bytes(self._index[0])
         if self.has_tilted:  # the squashed views' trees: `track` built them at its first
-            # relocalisation, inside the tracking (0.9 s for 144 keyframes); now here, once
-            search = (self._tilted_index or self._build_index(True))[0]
-            tables["tilt_recognition_index"] = (
-                search.to_bytes() if search else np.zeros(0, np.uint8)
-            )
+            # relocalisation, inside the tracking (0.9 s for 144 keyframes); now here, once.
+            # Each index holds its rows as float twice (FLANN keeps a copy) and its trees:
+            # 67 and 165 MB for 144 keyframes, so the first is let go before the second is
+            # built (the build's peak 762 -> ~700 MB); a later search loads their bytes
+            self._index = None
+            self.tables["recognition_index"] = tables["recognition_index"]
+            had = self._tilted_index
+            tables["tilt_recognition_index"] = _index_bytes((had or self._build_index(True))[0])
+            self._tilted_index = None
+            self.tables["tilt_recognition_index"] = tables["tilt_recognition_index"]
         return tables
 
     def _tilted_arrays(self, dim: int) -> dict[str, np.ndarray]:
@@ -658,6 +662,11 @@ def _mapped(z: zipfile.ZipFile, zi: zipfile.ZipInfo, path) -> np.ndarray | None:
     start = zi.header_offset + 30 + int.from_bytes(local[26:28], "little")
     start += int.from_bytes(local[28:30], "little") + header
     return np.memmap(path, dtype, "r", start, shape)
+
+
+def _index_bytes(search) -> np.ndarray:
+    """A DescriptorIndex's KD-trees as stored (empty: no index)."""
+    return search.to_bytes() if search is not None else np.zeros(0, np.uint8)
 
 
 def _sha(a: np.ndarray) -> str:
