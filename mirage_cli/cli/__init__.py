@@ -214,10 +214,10 @@ def exit_without_teardown(code) -> None:
         return
     try:
         shutdown()  # joins the worker threads (their executors' exit hooks first)
-        atexit._run_exitfuncs()
     except KeyboardInterrupt as e:  # a second signal while threads finish
         print(signals.message(e), file=sys.stderr)
         code = signals.exit_code(e)
+    atexit._run_exitfuncs()  # (it reports a callback's error itself, and goes on)
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
