@@ -101,13 +101,11 @@ def test_recognize_and_nearest_keyframes(model):
 
 
 def test_model_file_holds_the_tables_tracking_needs(built, tmp_path):
-    """The twins and ground tables and the recognition KD-trees (the squashed views' too)
-    are built once, by build-model, and read back, not rebuilt at each start; they equal
-    what a model file without them gets built at load (issue 31: 5 s of a 144-keyframe
-    model's start; the squashed views' trees 0.9 s of its first relocalisation)."""
+    """The twins and ground tables and the recognition KD-trees are built once, by
+    build-model, and read back, not rebuilt at each start; they equal what a model file
+    without them gets built at load (issue 31: 5 s of a 144-keyframe model's start)."""
     model = LandmarkModel.load(built[0])
-    tables = {"twins", "ground", "recognition_index", "tilt_recognition_index"}
-    assert set(model.tables) == tables
+    assert set(model.tables) == {"twins", "ground", "recognition_index"}
     assert np.array_equal(model.twins(), point_twins(model))
     assert np.array_equal(model.ground(), ground_points(model.points))
     model.prepare_recognition()
@@ -120,9 +118,8 @@ def test_model_file_holds_the_tables_tracking_needs(built, tmp_path):
     for i in (0, 9, 20, 33):
         q = model.keyframes[i].descriptors
         assert model.recognize(q)[0][0] == rebuilt.recognize(q)[0][0] == i
-        assert model.recognize(q, tilted=True)[0][0] == rebuilt.recognize(q, tilted=True)[0][0] == i
-    assert model._tilted_index[0].loaded  # the squashed views' trees too
-    assert not rebuilt._index[0].loaded and not rebuilt._tilted_index[0].loaded
+        assert model.recognize(q, tilted=True)[0][0] == i
+    assert not rebuilt._index[0].loaded
     Tracker(rebuilt, rebuilt.camera, TrackSettings())  # a file of before still tracks
 
 
@@ -131,7 +128,7 @@ def _without_tables(path, out):
     with zipfile.ZipFile(path) as z:
         items = {n: z.read(n) for n in z.namelist()}
     manifest = json.loads(items.pop("manifest.json"))
-    for name in ("twins", "ground", "recognition_index", "tilt_recognition_index"):
+    for name in ("twins", "ground", "recognition_index"):
         del manifest["arrays"][name]
         del items[f"{name}.npy"]
     with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as z:
