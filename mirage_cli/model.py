@@ -128,7 +128,12 @@ class KeyframeRecognition:
         KD-trees of it (`DescriptorIndex`)."""
         alld, owner, pids = self._linked_rows(tilted)
         hamming = self.detector.spec.norm == cv2.NORM_HAMMING
-        search = DescriptorIndex(alld, hamming, stored, seed=None) if len(alld) else None
+        # the squashed views' trees from a seed of their own: the same trees whether
+        # `build-model` stored them or a search builds them (an in-process model, a file
+        # made before), so a benchmark measures what the command does; the recognition
+        # trees go on from the twins' seed (see DescriptorIndex)
+        seed = TILTED_TREE_SEED if tilted else None
+        search = DescriptorIndex(alld, hamming, stored, seed=seed) if len(alld) else None
         index = (search, owner, pids)
         if tilted:
             self._tilted_index = index
@@ -176,9 +181,9 @@ class KeyframeRecognition:
         if len(descriptors) == 0 or not self.keyframes:
             return []
         index = self._tilted_index if tilted else self._index
-        if index is None:  # (the tilted views' index: built when a relocalisation needs it)
+        if index is None:  # (the tilted views' index: loaded when a relocalisation needs it)
             index = self._build_index(
-                tilted, None if tilted else self.tables.get("recognition_index")
+                tilted, self.tables.get("tilt_recognition_index" if tilted else "recognition_index")
             )
         search, owner, pids = index
         if search is None:
@@ -366,8 +371,18 @@ class LandmarkModel(KeyframeRecognition):
         `mirage track` start: the twins and ground tables and the recognition KD-trees."""
         tables = {"twins": self.twins().astype(np.uint8), "ground": self.ground().astype(np.uint8)}
         self.prepare_recognition()  # after the twins: the trees `track` built from them
-        search = self._index[0]
-        tables["recognition_index"] = search.to_bytes() if search else np.zeros(0, np.uint8)
+        tables["recognition_index"] = _index_bytes(self._index[0])
+        if self.has_tilted:  # the squashed views' trees: `track` built them at its first
+            # relocalisation, inside the tracking (0.9 s for 144 keyframes); now here, once.
+            # Each index holds its rows as float twice (FLANN keeps a copy) and its trees:
+            # 67 and 165 MB for 144 keyframes, so the first is let go before the second is
+            # built (the build's peak 762 -> ~700 MB); a later search loads their bytes
+            self._index = None
+            self.tables["recognition_index"] = tables["recognition_index"]
+            had = self._tilted_index
+            tables["tilt_recognition_index"] = _index_bytes((had or self._build_index(True))[0])
+            self._tilted_index = None
+            self.tables["tilt_recognition_index"] = tables["tilt_recognition_index"]
         return tables
 
     def _tilted_arrays(self, dim: int) -> dict[str, np.ndarray]:
@@ -599,15 +614,23 @@ def _azimuth_steps(azimuths_deg) -> tuple[np.ndarray, np.ndarray]:
     return a, np.diff(np.concatenate([a, a[:1] + 360.0]))
 
 
+TILTED_TREE_SEED = 0  # a fixed seed (as the twins'): the trees depend on the model alone
+
 # what a model file may hold besides its keyframes and points (`_table_arrays`); a file
 # without them (made before) gets them built when first needed
-_TABLES = ("twins", "ground", "recognition_index")
+_TABLES = ("twins", "ground", "recognition_index", "tilt_recognition_index")
 
 # arrays stored uncompressed and memory-mapped at load: a keyframe's descriptors are read
 # when it is first matched (SIFT's bytes compress to 80%: not worth inflating at every load);
 # the KD-trees (13 MB deflated to 4 for 144 keyframes: 70 ms of every start to inflate)
 # and the thumbnails (the viewer's only) likewise
-_MAPPED = {"descriptors.npy", "tilt_descriptors.npy", "recognition_index.npy", "thumbnails.npy"}
+_MAPPED = {
+    "descriptors.npy",
+    "tilt_descriptors.npy",
+    "recognition_index.npy",
+    "tilt_recognition_index.npy",
+    "thumbnails.npy",
+}
 
 
 def _read_array(z: zipfile.ZipFile, path, name: str, info: dict, hint: str) -> np.ndarray:
@@ -646,6 +669,11 @@ def _mapped(z: zipfile.ZipFile, zi: zipfile.ZipInfo, path) -> np.ndarray | None:
     start = zi.header_offset + 30 + int.from_bytes(local[26:28], "little")
     start += int.from_bytes(local[28:30], "little") + header
     return np.memmap(path, dtype, "r", start, shape)
+
+
+def _index_bytes(search) -> np.ndarray:
+    """A DescriptorIndex's KD-trees as stored (empty: no index)."""
+    return search.to_bytes() if search is not None else np.zeros(0, np.uint8)
 
 
 def _sha(a: np.ndarray) -> str:
