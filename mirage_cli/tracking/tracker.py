@@ -95,6 +95,11 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._frame_no = -1  # frames processed, for the smoother's anchors
         self._anchor_no = -1  # the frame whose detection the flowed points come from
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
+        # the hint goes back to a relocalisation that was only `uncertain` in a lost
+        # stretch where another relocalisation found two places: what is found around it
+        # must be confirmed (`_confirm`)
+        self._unconfirmed = False
+        self._ambiguity_seen = False  # since the last ok pose
         self._uncertain_pose: Pose | None = None
         # features of coming frames being detected on the worker: (frame, kind) -> Future,
         # kind 'box' (the next regular detection), 'lostbox', 'probe' or 'full' (a lost
@@ -147,6 +152,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         res = None
         self._uncertain_pose = None
         self._frame_no += 1
+        chained = self._from_unconfirmed()
         self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
         if self.lost_run > 0 and (self.prev_pose is not None or self.hint is None):
             self._search_ahead(ahead)  # lost (the first frame is expected to find it)
@@ -194,7 +200,20 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
                 self.prev_pose = None  # too long: recognise globally again
         # a pose too vague to write still says where to look in the next frame
         self.hint = self._uncertain_pose if res.status == Status.UNCERTAIN else None
+        if res.ok:
+            self._ambiguity_seen = False
+        elif res.reason == Reason.AMBIGUOUS:
+            self._ambiguity_seen = True
+        self._unconfirmed = (
+            self.hint is not None and self._ambiguity_seen
+            and (res.mode == "relocalise" or chained)
+        )  # fmt: skip
         return res
+
+    def _from_unconfirmed(self) -> bool:
+        """This frame's prediction is a hint that goes back to an unconfirmed
+        relocalisation."""
+        return self.prev_pose is None and self.hint is not None and self._unconfirmed
 
     def _at_scale(self, f: float) -> None:
         """Features detected on an image shrunk by `f`: the pixel limits follow (until the
@@ -230,7 +249,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
                 kps, desc = self._box_features(gray, box, self.detector)
             self._at_scale(max(1.0, used[4]) if used else self.full_scale)
             if len(kps) >= self.settings.min_track_inliers:
-                res = self._guided(kps, desc, pred)
+                res = self._confirm(self._guided(kps, desc, pred), gray)
                 # an uncertain pose found the landmark where predicted and says its view
                 # is too weak: relocalising (no prediction, a stricter gate) sees the same
                 # view and costs a full-frame detection more (4 m orbit: 200 ms a frame)
@@ -248,10 +267,36 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         if desc is None or len(kps) < self.settings.min_inliers:
             return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_FEATURES)
         if pred is not None and box is None:
-            res = self._guided(kps, desc, pred)
+            res = self._confirm(self._guided(kps, desc, pred), gray)
             if res.ok or res.status == Status.UNCERTAIN:  # as above
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
+
+    def _confirm(self, res: FrameRecord, gray: np.ndarray) -> FrameRecord:
+        """A guided detection around a hint that goes back to an `uncertain` relocalisation,
+        in a lost stretch where relocalisations also found two places (`ambiguous`): ok
+        only when a relocalisation of this frame (on the lost search's schedule) is ok, and
+        then as that relocalisation. Guided matching finds what the hint predicts: in the
+        report seed above 1006 (13 frames ambiguous, then one uncertain relocalisation on
+        a look-alike side) it was followed to 39 ok poses 155 deg off. Until confirmed the
+        pose is only where to look next: `uncertain`, and no evidence for the smoother."""
+        if not self._from_unconfirmed() or res.status not in (Status.OK, Status.UNCERTAIN):
+            return res
+        pose = res.pose if res.ok else self._uncertain_pose
+        if res.ok and self._search(self.lost_run) == "full":
+            kps, desc = self._features("full", self._full_features, gray)
+            self._at_scale(self.full_scale)
+            if desc is not None and len(kps) >= self.settings.min_inliers:
+                rel = self._relocalise(kps, desc)
+                if rel.ok:  # as a lost frame's: the hint was only where to look
+                    return rel
+                if rel.status == Status.AMBIGUOUS:
+                    res.reason = Reason.AMBIGUOUS
+        res.status, res.pose, res.measurement = Status.UNCERTAIN, None, None
+        if res.reason != Reason.AMBIGUOUS:
+            res.reason = Reason.UNCERTAIN
+        self._uncertain_pose = pose
+        return res
 
     def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int, land) -> FrameRecord:
         res.keyframe = self.model.keyframes[kf].name
