@@ -210,11 +210,6 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         )  # fmt: skip
         return res
 
-    def _from_unconfirmed(self) -> bool:
-        """This frame's prediction is a hint that goes back to an unconfirmed
-        relocalisation."""
-        return self.prev_pose is None and self.hint is not None and self._unconfirmed
-
     def _at_scale(self, f: float) -> None:
         """Features detected on an image shrunk by `f`: the pixel limits follow (until the
         next detection: flowed points keep their detection's)."""
@@ -271,33 +266,6 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             if res.ok or res.status == Status.UNCERTAIN:  # as above
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
-
-    def _confirm(self, res: FrameRecord, gray: np.ndarray) -> FrameRecord:
-        """A guided detection around a hint that goes back to an `uncertain` relocalisation,
-        in a lost stretch where relocalisations also found two places (`ambiguous`): ok
-        only when a relocalisation of this frame (on the lost search's schedule) is ok, and
-        then as that relocalisation. Guided matching finds what the hint predicts: in the
-        report seed above 1006 (11 frames ambiguous, then one uncertain relocalisation on
-        a look-alike side) it was followed to ok poses 155 deg off (62 wrong, 23 with
-        this check). Until confirmed the pose is only where to look next: `uncertain`,
-        and no evidence for the smoother."""
-        if not self._from_unconfirmed() or res.status not in (Status.OK, Status.UNCERTAIN):
-            return res
-        pose = res.pose if res.ok else self._uncertain_pose
-        if res.ok and self._search(self.lost_run) == "full":
-            kps, desc = self._features("full", self._full_features, gray)
-            self._at_scale(self.full_scale)
-            if desc is not None and len(kps) >= self.settings.min_inliers:
-                rel = self._relocalise(kps, desc)
-                if rel.ok:  # as a lost frame's: the hint was only where to look
-                    return rel
-                if rel.status == Status.AMBIGUOUS:
-                    res.reason = Reason.AMBIGUOUS
-        res.status, res.pose, res.measurement = Status.UNCERTAIN, None, None
-        if res.reason != Reason.AMBIGUOUS:
-            res.reason = Reason.UNCERTAIN
-        self._uncertain_pose = pose
-        return res
 
     def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int, land) -> FrameRecord:
         res.keyframe = self.model.keyframes[kf].name
