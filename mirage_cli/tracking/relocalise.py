@@ -83,7 +83,7 @@ class Relocalisation:
         relocalisation."""
         return self.prev_pose is None and self.hint is not None and self._unconfirmed
 
-    def _confirm(self, res: FrameRecord, gray: np.ndarray) -> FrameRecord:
+    def _confirm(self, res: FrameRecord, gray: np.ndarray, full=None) -> FrameRecord:
         """A guided detection around a hint that goes back to an `uncertain` relocalisation,
         in a lost stretch where relocalisations also found two places (`ambiguous`): ok
         only when a relocalisation of this frame (on the lost search's schedule) is ok, and
@@ -91,12 +91,13 @@ class Relocalisation:
         report seed above 1006 (11 frames ambiguous, then one uncertain relocalisation on
         a look-alike side) it was followed to ok poses 155 deg off (62 wrong, 23 with
         this check). Until confirmed the pose is only where to look next: `uncertain`,
-        and no evidence for the smoother."""
+        and no evidence for the smoother. `full`: the frame's whole-frame features when
+        they are already detected."""
         if not self._from_unconfirmed() or res.status not in (Status.OK, Status.UNCERTAIN):
             return res
         pose = res.pose if res.ok else self._uncertain_pose
         if res.ok and self._search(self.lost_run) == "full":
-            kps, desc = self._features("full", self._full_features, gray)
+            kps, desc = full or self._features("full", self._full_features, gray)
             self._at_scale(self.full_scale)
             if desc is not None and len(kps) >= self.settings.min_inliers:
                 rel = self._relocalise(kps, desc)

@@ -262,7 +262,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         if desc is None or len(kps) < self.settings.min_inliers:
             return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_FEATURES)
         if pred is not None and box is None:
-            res = self._confirm(self._guided(kps, desc, pred), gray)
+            res = self._confirm(self._guided(kps, desc, pred), gray, (kps, desc))
             if res.ok or res.status == Status.UNCERTAIN:  # as above
                 return res
         return self._relocalise(kps, desc)  # also when the prediction was too far off
