@@ -3,8 +3,9 @@
 For each scene of a matrix (640x480 / 1080p / 4K x normal / weak texture / dusk / from
 above, and models of 18-144 keyframes of the same landmark), `mirage track` runs as a user
 runs it, in a subprocess: frames/s by its summary, wall seconds from start (model loading
-included), seconds to the first pose (`--end 1`), peak memory, the share of in-view frames
-that needed a full detection (detect / relocalise rows of the CSV), accuracy against the
+included), seconds to the first pose (`--end 1`), peak memory, the CPU time per frame after
+the first pose and how many cores it kept busy (CPU over wall time), the share of in-view
+frames that needed a full detection (detect / relocalise rows of the CSV), accuracy against the
 truth (median error, wrong poses over 10 cm or 5 deg). The plain OpenCV peer
 (benchmarks/track.py: SIFT + FLANN against every model point + solvePnPRansac, no
 temporal tracking) tracks the same video in this process for the speed ratio.
@@ -28,6 +29,7 @@ import argparse
 import importlib.util
 import os
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -122,24 +124,27 @@ def model_for(keyframes: Path, spacing: str | None) -> tuple[Path, float, float]
         argv = ["build-model", str(keyframes), "--poses", str(keyframes / "poses.csv")]
         argv += ["--camera", str(keyframes.parent / "camera_truth.yaml"), "-o", str(path)]
         argv += ["--spacing-deg", spacing] if spacing else []
-        _, wall, mb = run_cli(ROOT, argv)
+        _, wall, mb, _ = run_cli(ROOT, argv)
         stats.write_text(f"{wall} {mb}\n")
     wall, mb = (float(v) for v in stats.read_text().split())
     return path, wall, mb
 
 
-def run_cli(root: Path, argv: list[str]) -> tuple[str, float, float]:
+def run_cli(root: Path, argv: list[str]) -> tuple[str, float, float, float]:
     """`mirage ARGV` of the checkout at `root` in a subprocess: (its output, wall seconds
-    from start, peak resident MB)."""
+    from start, peak resident MB, CPU seconds of all its threads, user + system)."""
     env = dict(os.environ, PYTHONPATH=str(root))
     t0 = time.perf_counter()
+    ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     p = subprocess.run([sys.executable, "-c", bench_track.PEAK, *argv],
                        capture_output=True, text=True, cwd=root, env=env)  # fmt: skip
     wall = time.perf_counter() - t0
+    ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
     if p.returncode != 0:
         raise SystemExit(f"mirage {' '.join(argv[:2])} failed:\n{p.stderr[-2000:]}")
     kb = re.search(r"peak_rss_kb (\d+)", p.stderr)
-    return p.stdout + p.stderr, wall, int(kb.group(1)) / 1024 if kb else float("nan")
+    return p.stdout + p.stderr, wall, int(kb.group(1)) / 1024 if kb else float("nan"), cpu
 
 
 def track_row(root: Path, video: Path, model: Path, camera: Path, truth) -> dict:
@@ -147,12 +152,19 @@ def track_row(root: Path, video: Path, model: Path, camera: Path, truth) -> dict
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "poses.csv"
         argv = ["track", str(video), "--model", str(model), "--camera", str(camera)]
-        text, wall, mb = run_cli(root, [*argv, "-o", str(out)])
+        text, wall, mb, cpu = run_cli(root, [*argv, "-o", str(out)])
         rows = read_pose_csv(out)
         ok = np.flatnonzero(rows["status"].to_numpy() == "ok")
         # the wall time of a run that stops at the first ok pose: start-up, model, search
-        end = ["--end", str(int(ok[0]) + 1 if len(ok) else 1)]
-        first = run_cli(root, [*argv, "-o", str(Path(tmp) / "first.csv"), *end])[1]
+        n0 = int(ok[0]) + 1 if len(ok) else 1
+        _, first, _, cpu0 = run_cli(
+            root, [*argv, "-o", str(Path(tmp) / "first.csv"), "--end", str(n0)]
+        )
+    # CPU after the first pose, per frame and per second of wall time: how much of two
+    # cores the tracking keeps busy (2 on a 2-core machine: bound by CPU, not by waiting)
+    frames = max(len(rows) - n0, 1)
+    cpu_ms = 1000 * (cpu - cpu0) / frames
+    cores = (cpu - cpu0) / max(wall - first, 1e-9)
     fps = float(re.search(r"throughput ([\d.]+) frames/s", text).group(1))
     vis = truth["landmark_visible"].to_numpy()[: len(rows)]
     inview = vis >= IN_VIEW
@@ -168,7 +180,7 @@ def track_row(root: Path, video: Path, model: Path, camera: Path, truth) -> dict
         err.append(e)
     ok_in = (rows["status"].to_numpy() == "ok")[inview]
     return {
-        "fps": fps, "wall": wall, "first": first, "mb": mb,
+        "fps": fps, "wall": wall, "first": first, "mb": mb, "cpu_ms": cpu_ms, "cores": cores,
         "full": 100 * full[inview].mean(), "steady": 100 * full[~near].mean(),
         "tracked": 100 * ok_in.mean(),
         "med_mm": 1000 * float(np.median(err)) if err else float("nan"), "wrong": wrong,
@@ -209,11 +221,12 @@ def main() -> None:
     roots = [ROOT] + ([args.against.resolve()] if args.against else [])
     print(f"throughput, {args.seconds:g} s videos; median of {args.repeats} run(s)\n")
     print(
-        "| scene | frames/s | wall s | first pose s | peak MB | full detections % of in "
-        "view / steady | tracked in view % | median error mm | wrong | peer frames/s | ratio |"
+        "| scene | frames/s | wall s | first pose s | peak MB | CPU ms per frame / cores busy "
+        "| full detections % of in view / steady | tracked in view % | median error mm | wrong "
+        "| peer frames/s | ratio |"
         + (" vs --against: frames/s ratio, its first pose s |" if args.against else "")
     )
-    print("|---" * (11 + bool(args.against)) + "|")
+    print("|---" * (12 + bool(args.against)) + "|")
     for name in names:
         _row(name, args, roots)
 
@@ -234,7 +247,8 @@ def _row(name: str, args, roots: list[Path]) -> None:
     nk = len(LandmarkModel.load(model).keyframes)
     line = (
         f"| {name} ({nk} kf; build {build_s:.0f} s, {build_mb:.0f} MB) | {med['fps']:.1f} "
-        f"| {med['wall']:.1f} | {med['first']:.2f} | {med['mb']:.0f} | {med['full']:.1f} / "
+        f"| {med['wall']:.1f} | {med['first']:.2f} | {med['mb']:.0f} "
+        f"| {med['cpu_ms']:.1f} / {med['cores']:.2f} | {med['full']:.1f} / "
         f"{med['steady']:.1f} "
         f"| {med['tracked']:.1f} | {med['med_mm']:.2f} | {med['wrong']:.0f} | {peer:.1f} "
         f"| {med['fps'] / peer:.1f}x |"
