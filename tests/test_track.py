@@ -16,7 +16,7 @@ from mirage_cli.camera import Camera
 from mirage_cli.frames import Frame, FrameSource
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pipelines.track import tracked_records
-from mirage_cli.records import Status
+from mirage_cli.records import FrameRecord, Reason, Status
 from mirage_cli.synth import LANDMARK_TARGET
 from mirage_cli.tracking import Tracker, TrackSettings, schedule, track_frames
 from mirage_cli.tracking.gating import frame_covariances
@@ -476,6 +476,46 @@ def test_dropped_frames_are_detected_not_flowed_astray(sample_model):
     assert max(err) < 0.01  # 1 cm; 3.1 mm measured
     after = [r.mode for r in recs if r.frame >= 23]
     assert after[:2] == ["detect", "detect"] and "flow" in after[2:]
+
+
+def test_a_regular_detection_that_fails_keeps_a_flow_that_holds(sample_model, monkeypatch):
+    """The schedule's detection (every sixth frame while the flow holds) finds no ok pose,
+    as in a view the keyframes match poorly (50 deg above the sample's keyframes: 12-13
+    inliers where the flow follows 23 of 25 points): the frame keeps its flowed pose and the
+    points are followed on from it, instead of being dropped for 40 frames of
+    relocalisation. A frame that the flow cannot follow either (blank) is still lost, and
+    a detection that found two places keeps the frame `ambiguous`."""
+    model = LandmarkModel.load(sample_model)
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    src = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(0, 20))
+    detect = Tracker._detect
+
+    def failing(self, gray):  # the regular detections of frames 6 and 11 find nothing
+        if self._frame_no in (6, 11):
+            self.since_detect = 0
+            return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.FEW_INLIERS)
+        return detect(self, gray)
+
+    monkeypatch.setattr(Tracker, "_detect", failing)
+    recs = list(track_frames(iter(src), Tracker(model, model.camera, TrackSettings())))
+    modes = [r.mode for r in recs]
+    assert modes[:17] == ["relocalise", *["flow"] * 15, "detect"], modes
+    assert all(r.ok for r in recs)
+    err = [r.pose.distance_to(row_pose(truth.iloc[r.frame])) for r in recs]
+    assert max(err) < 0.006, max(err)  # 1.5 mm measured
+    blank = [*src[:6], Frame(6, 6, 0.2, np.full_like(src[6].image, 128)), *src[7:]]
+    recs = list(track_frames(iter(blank), Tracker(model, model.camera, TrackSettings())))
+    assert recs[6].status == Status.LOST and all(r.ok for r in recs[:6])
+
+    def two_places(self, gray):  # the flow may follow a look-alike side: no fallback
+        if self._frame_no == 6:
+            self.since_detect = 0
+            return FrameRecord(Status.AMBIGUOUS, mode="relocalise", reason=Reason.AMBIGUOUS)
+        return detect(self, gray)
+
+    monkeypatch.setattr(Tracker, "_detect", two_places)
+    recs = list(track_frames(iter(src), Tracker(model, model.camera, TrackSettings())))
+    assert recs[6].status == Status.AMBIGUOUS and all(r.ok for r in recs[:6])
 
 
 def test_flow_holds_through_auto_exposure_steps(sample_model):

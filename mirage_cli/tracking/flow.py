@@ -2,7 +2,8 @@
 Lucas-Kanade from the frame they were detected in (the anchor), then Mirage-S from the
 previous pose. A mixin of `Tracker`: it reads the tracker's prediction and gate, and keeps
 the anchor's state (`anchor_gray`, `anchor_px`, `anchor_n`, `_anchor_level`) and the points
-followed (`track_px`, `track_X`, `track_land`)."""
+followed (`track_px`, `track_X`, `track_land`), and keeps following them through a
+regular detection that finds nothing against them."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import cv2
 import numpy as np
 
 from ..pose import Pose
-from ..records import FrameRecord
+from ..records import FrameRecord, Reason
 from ..solver import sigmas, solve_pose
 
 
@@ -66,11 +67,11 @@ class FlowTracking:
             if tracked is None:
                 return None
         p1, good = tracked
-        # the flow has weakened: detect afresh. A detection with fewer points than
-        # `min_flow_points` (a small view from above: 20-29 inliers) was trusted with them,
-        # so its flow needs all of them, not more than it had
-        n = self.anchor_n
-        if good.sum() < max(min(self.settings.min_flow_points, n), self.settings.flow_keep * n):
+        # the flow has weakened: detect afresh. A detection with few points (a small view
+        # from above: 20-29 inliers) was trusted with them, so its flow needs most of them
+        # (`flow_keep_few`), not more than it had
+        n, s = self.anchor_n, self.settings
+        if good.sum() < max(min(s.min_flow_points, s.flow_keep_few * n), s.flow_keep * n):
             return None
         X, uv = self.track_X[good], p1[good]
         est = solve_pose(
@@ -99,6 +100,37 @@ class FlowTracking:
             self._anchor_level = self._anchor_level[good][est.inliers]
             res.inlier_px = self.track_px
         return res
+
+    def _regular_detection(self, gray: np.ndarray) -> FrameRecord:
+        """The detection the schedule asked for while the flow still held. When it finds
+        nothing that contradicts the flow, the flow keeps the frame: a view that the
+        keyframes match poorly (from 50 deg above the sample's keyframes: 12-13 inliers
+        where the flow follows 23 of 25 points) is no reason to drop points that still
+        follow the landmark, and losing them cost 40 frames of relocalisation. A detection
+        that found two places (`ambiguous`) or a pose of its own away from the flowed one
+        does contradict it: the flow may follow a look-alike side (tuning seed above 7:
+        146 wrong poses when the flow was kept through its ambiguous detections), so the
+        frame is the detection's. The next regular detection tries again."""
+        scale = self.px_scale
+        res = self._detect(gray)
+        found = self._uncertain_pose  # the detection's own pose, if it was uncertain
+        if res.ok or res.reason == Reason.AMBIGUOUS:
+            return res
+        self._at_scale(scale)  # the flowed points keep their detection's pixel limits
+        flowed = self._flow(gray)
+        self._uncertain_pose = found
+        s = self.settings
+        if flowed is None or not flowed.ok or (
+            found is not None
+            and (found.distance_to(flowed.pose) > s.distinct_m
+                 or found.angle_to(flowed.pose) > s.distinct_deg)
+        ):  # fmt: skip
+            return res
+        # the points are followed from this frame on, nearer the views to come than the
+        # anchor's; they keep its errors, so its number (the smoother's anchor) stays
+        self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
+        self.anchor_n, self._anchor_level = len(self.anchor_px), None
+        return flowed
 
     def _lucas_kanade(self, gray, a0, guess, lk) -> tuple[np.ndarray, np.ndarray] | None:
         """The anchor's points in `gray` (N,2) and which of them flowed well (both ways).

@@ -30,12 +30,13 @@ class TrackSettings:
     )
     ratio: float = 0.8
     flow: bool = True
-    min_flow_points: int = 30
+    min_flow_points: int = 30  # the flow needs this many of the detected points, or
+    flow_keep_few: float = 0.8  # this share of a detection with fewer (a small view), and
+    flow_keep: float = 0.5  # this share of any detection: else detect afresh
     flow_fb_px: float = 0.7  # forward-backward consistency of Lucas-Kanade
     flow_window_px: int = 7  # Lucas-Kanade window: small, so it stays on one surface
     flow_levels: int = 1  # pyramid levels above the image: each point starts where the
     # predicted pose puts it (forward) or at its anchor (backward), so one suffices
-    flow_keep: float = 0.5  # fewer of the detected points still followed: detect afresh
     flow_max_dev_sigma: float = 4.0  # flowed pose this many sigmas off the prediction: detect
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
     flow_gain_tol: float = 0.05  # the exposure changed more since the anchor: flow again

@@ -156,16 +156,13 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
         if self.lost_run > 0 and (self.prev_pose is not None or self.hint is None):
             self._search_ahead(ahead)  # lost (the first frame is expected to find it)
-        if (
-            self.settings.flow
-            and self.prev_pose is not None
-            and self.track_px is not None
-            and self.since_detect < self.settings.redetect_every
-        ):
+        can_flow = self.settings.flow and self.prev_pose is not None and self.track_px is not None
+        due = can_flow and self.since_detect >= self.settings.redetect_every
+        if can_flow and not due:
             res = self._flow(gray)
         if res is None or not res.ok:
-            res = self._detect(gray)
-            if res.ok:
+            res = self._detect(gray) if not due else self._regular_detection(gray)
+            if res.ok and res.mode != "flow":
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
                 self._anchor_level = None
