@@ -10,7 +10,7 @@ from conftest import SAMPLE
 
 from mirage_cli.camera import Camera
 from mirage_cli.features import guided_match
-from mirage_cli.model import LandmarkModel, ground_points, point_twins
+from mirage_cli.model import LandmarkModel, ground_points, periodic_floor, point_twins
 from mirage_cli.pose import Pose, look_at
 from mirage_cli.solver import PoseEstimate
 from mirage_cli.tracking import Tracker, TrackSettings
@@ -220,6 +220,28 @@ def test_ground_is_the_lowest_dense_layer():
     assert g[:400].all() and not g[400:].any()  # a dense top face above it is landmark
     assert not ground_points(floor).any()  # all one layer: a flat landmark, no ground
     assert not ground_points(box).any()  # no dense layer at the bottom
+
+
+def test_a_repeating_floor_never_decides_even_when_it_is_most_of_the_model():
+    """A small landmark on grass: 96% of the points on the floor, which `ground_points`
+    leaves alone (a flat landmark looks the same), so a relocalisation one floor period
+    away was ok (tuning seed above 7). When most of the floor's points have descriptor
+    twins, the whole floor is repeated texture: none of it may vote."""
+    rng = np.random.default_rng(5)
+    floor = np.column_stack([rng.uniform(-1, 1, (9600, 2)), rng.normal(0, 0.008, 9600)])
+    box = rng.uniform([-0.2, -0.2, 0.05], [0.2, 0.2, 0.4], (400, 3))
+    P = np.vstack([floor, box])
+    assert not ground_points(P).any()  # 96% on one layer: not ground by itself
+    twins = np.zeros(len(P), bool)
+    twins[: int(0.7 * len(floor))] = True  # 70% of the floor found to repeat
+    flagged = periodic_floor(P, twins)
+    assert flagged[: len(floor)].mean() > 0.99 and not flagged[len(floor) :].any()
+    twins[: len(floor)] = False
+    twins[: int(0.3 * len(floor))] = True  # mostly unique floor texture: it may vote
+    assert not periodic_floor(P, twins).any()
+    flat = np.ones(len(floor), bool)  # all one layer (a flat landmark): never flagged
+    assert not periodic_floor(floor, flat).any()
+    assert not periodic_floor(np.vstack([floor, box[:50]]), np.ones(9650, bool)).any()
 
 
 def test_ground_alone_is_not_ok(model):

@@ -28,7 +28,7 @@ from .. import signals
 from ..camera import Camera
 from ..features import guided_match, make_detector, to_gray
 from ..frames import Frame
-from ..model import LandmarkModel
+from ..model import LandmarkModel, periodic_floor
 from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
 from ..signals import through_compiled_code
@@ -91,7 +91,8 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self.twins = model.twins()  # the model's tables: stored in its file, or built now
         model.prepare_recognition()
         self.on_landmark = ~model.ground()
-        self.votes = ~self.twins & self.on_landmark  # may decide a relocalisation
+        # may decide a relocalisation: no twin, no ground, nothing on a repeating floor
+        self.votes = ~self.twins & self.on_landmark & ~periodic_floor(model.points, self.twins)
         self._frame_no = -1  # frames processed, for the smoother's anchors
         self._anchor_no = -1  # the frame whose detection the flowed points come from
         self.hint: Pose | None = None  # the previous frame's uncertain pose (where to look)
