@@ -416,7 +416,7 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> Vi
         _need_two(chosen, "video frames with a pose")
         wanted = set(by_frame)
         got: dict[int, np.ndarray] = {}
-        for i, _, _, frame in src.frames(end=max(wanted) + 1, gray=True):
+        for i, _, _, frame, _ in src.frames(end=max(wanted) + 1, gray=True):
             if i in wanted and frame is not None:
                 got[i] = frame
                 if progress:
@@ -436,7 +436,7 @@ def _views_from_video(video, camera, settings, poses_csv, board, progress) -> Vi
     step = max(1, -(-src.count // settings.max_video_frames)) if src.count else 1
     cand: list[View] = []
     bad = 0
-    for i, _, _, frame in src.frames(every=step, gray=True):
+    for i, _, _, frame, _ in src.frames(every=step, gray=True):
         pose, _ = poser.pose(frame) if frame is not None else (None, "")
         if pose is None:
             bad += 1

@@ -210,6 +210,7 @@ class Frame(NamedTuple):
     id: int | str  # video frame number, or the image file name
     time_s: float  # seconds; NaN when the source has no times
     image: np.ndarray | None  # None when the frame cannot be decoded
+    colour: np.ndarray | None = None  # with `frames(colour=True)`: the BGR `image` was grayed from
 
 
 # Image names that are times: seconds with a decimal point (TUM: 1305031102.175304.png), or
@@ -326,15 +327,26 @@ class FrameSource:
         every: int = 1,
         gray: bool = False,
         luma: bool = False,
+        colour: bool = False,
     ) -> Iterator[Frame]:
         """Frames start, start + every, ... before `end`; undecodable ones with image None.
 
         `gray`: gray images (read as gray). `luma`: gray images as the tracker's gray
         (BGR2GRAY of the colour frame), a video's straight from its luma plane when its
         first frame proves that the same gray (`luma_mode`; within a grey level or two).
+        `colour` (with `luma`): each frame's colour image too, as `Frame.colour`, for the
+        overlays: the gray is the same as without it (a second decoder of the video gives
+        the colour), so drawing never changes what is tracked.
         """
         if every < 1:
             raise InputError(f"frame step must be >= 1, got {every}")
+        if luma and colour:
+            if self.bag is None and self.video is not None and self.luma_mode() is not None:
+                gray_it = self._video_frames(start, end, every, True, True)
+                yield from _with_colour(gray_it, self._video_frames(start, end, every, False))
+            else:
+                yield from gray_frames(self.frames(start, end, every), keep_colour=True)
+            return
         if luma and (self.bag is not None or self.video is None):
             yield from gray_frames(self.frames(start, end, every))
             return
@@ -418,19 +430,38 @@ class FrameSource:
             cap.release()
 
 
-def gray_frames(frames: Iterator[Frame]) -> Iterator[Frame]:
-    """`frames` with colour images turned gray: for a consumer that only tracks, done where
-    the frames are decoded (a thread of `prefetch`'s), not on the tracking thread (0.24 s
-    of the sample orbit's 540 frames)."""
+def gray_frames(frames: Iterator[Frame], keep_colour: bool = False) -> Iterator[Frame]:
+    """`frames` with colour images turned gray (`keep_colour`: the colour kept as
+    `Frame.colour`): done where the frames are decoded (a thread of `prefetch`'s), not on
+    the tracking thread (0.24 s of the sample orbit's 540 frames)."""
     try:
         for f in frames:
             if f.image is not None and f.image.ndim == 3:
-                f = f._replace(image=to_gray(f.image))
+                f = f._replace(image=to_gray(f.image), colour=f.image if keep_colour else None)
             yield f
     finally:
-        close = getattr(frames, "close", None)
-        if close is not None:
-            close()
+        _close(frames)
+
+
+def _close(frames) -> None:
+    close = getattr(frames, "close", None)
+    if close is not None:
+        close()
+
+
+def _with_colour(gray: Iterator[Frame], colour: Iterator[Frame]) -> Iterator[Frame]:
+    """`gray`'s frames, each with the colour image of the same index from `colour` (None
+    when that decoder did not give it: a damaged stretch can end otherwise in each)."""
+    try:
+        c = next(colour, None)
+        for g in gray:
+            while c is not None and c.index < g.index:
+                c = next(colour, None)
+            same = c is not None and c.index == g.index and g.image is not None
+            yield g._replace(colour=c.image if same else None)
+    finally:
+        _close(gray)
+        _close(colour)
 
 
 def prefetch(frames: Iterator[Frame], depth: int = 4) -> Iterator[Frame]:

@@ -250,6 +250,37 @@ def test_damaged_video_stretch_on_the_luma_path(tmp_path):
     assert max(gray_diff(fast, list(src.frames(0, 200, every=3, gray=True)))) <= LUMA_TOLERANCE
 
 
+def test_colour_with_the_luma_gray_tracks_the_same_gray(tmp_path):
+    """Overlays need the colour: `frames(luma=True, colour=True)` gives the same gray as
+    without colour (pixel for pixel) and each frame's own colour image, on the luma path (a
+    second decoder), on a damaged video (both decoders' frames stay aligned by index), and
+    on sources without a luma plane (the colour is what was grayed)."""
+    src = FrameSource([SAMPLE / "orbit.mp4"])
+    both = list(src.frames(5, 60, every=4, luma=True, colour=True))
+    gray = list(src.frames(5, 60, every=4, luma=True))
+    colour = list(src.frames(5, 60, every=4))
+    assert [f.id for f in both] == [f.id for f in gray] == list(range(5, 60, 4))
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(both, gray, strict=True))
+    assert all(np.array_equal(a.colour, c.image) for a, c in zip(both, colour, strict=True))
+    data = bytearray((SAMPLE / "orbit.mp4").read_bytes())
+    a = len(data) // 6
+    data[a : a + 100_000] = np.random.default_rng(0).integers(0, 256, 100_000, np.uint8).tobytes()
+    (tmp_path / "damaged.mp4").write_bytes(bytes(data))
+    src = FrameSource([tmp_path / "damaged.mp4"])
+    both = list(src.frames(0, 200, every=3, luma=True, colour=True))
+    gray = list(src.frames(0, 200, every=3, luma=True))
+    colour = {f.index: f.image for f in src.frames(0, 200, every=3)}
+    assert [f.id for f in both] == [f.id for f in gray] and any(f.image is None for f in both)
+    for f, g in zip(both, gray, strict=True):
+        assert (f.image is None) == (g.image is None) and (f.colour is None) == (f.image is None)
+        if f.image is not None:
+            assert np.array_equal(f.image, g.image) and np.array_equal(f.colour, colour[f.index])
+    folder = list(FrameSource([SAMPLE / "keyframes"]).frames(0, 3, luma=True, colour=True))
+    first = cv2.imread(str(sorted((SAMPLE / "keyframes").glob("*.jpg"))[0]))
+    assert np.array_equal(folder[0].colour, first)
+    assert np.array_equal(folder[0].image, cv2.cvtColor(first, cv2.COLOR_BGR2GRAY))
+
+
 def test_luma_path_says_nothing_on_stderr():
     """OpenCV warns twice of a capture with BGR conversion off ("at your own risk",
     "unsupported picture format"): the luma path silences both and restores the level

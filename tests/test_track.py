@@ -139,13 +139,13 @@ def test_csv_tum_kitti_of_one_run_agree(orbit_run):
 def test_run_yields_the_cli_poses(orbit_run, sample_model):
     """tracked_records (the tracker, then the smoother) in-process gives the rows the CLI
     wrote (the first 40 frames; their smoothing windows end 15 frames later, inside the 60
-    tracked)."""
+    tracked; the frames read as the CLI reads them, gray from the video's luma plane)."""
     csv, _, _ = orbit_run
     cli = read_pose_csv(csv).iloc[:40]
     model = LandmarkModel.load(sample_model)
     src = FrameSource([SAMPLE / "orbit.mp4"])
     tracker = Tracker(model, model.camera, TrackSettings())
-    recs = list(tracked_records(src.frames(end=60), tracker, SmoothSettings()))[:40]
+    recs = list(tracked_records(src.frames(end=60, luma=True), tracker, SmoothSettings()))[:40]
     assert [r.frame for r in recs] == list(range(40))
     assert [str(r.status) for r in recs] == cli["status"].tolist()
     assert np.allclose([r.time_s for r in recs], cli["time_s"], atol=1e-6)

@@ -210,7 +210,7 @@ def test_a_new_format_is_one_entry_and_one_row_function(tmp_path, monkeypatch, c
     ]
     monkeypatch.setattr(pipeline, "track_frames", lambda frames, tracker, keep_images: iter(recs))
     monkeypatch.setattr(pipeline, "warm_up", lambda: None)
-    src = SimpleNamespace(count=3, fps=30.0, frames=lambda first, last, every: iter(()))
+    src = SimpleNamespace(count=3, fps=30.0, frames=lambda first, last, every, **kw: iter(()))
     tracker = SimpleNamespace(model=SimpleNamespace(points=np.zeros((0, 3))), camera=None)
     also = {"tum": tmp_path / "p.tum", "xyz": tmp_path / "p.xyz"}
     job = pipeline.TrackJob(src, tracker, tmp_path / "p.csv", formats=also)

@@ -193,7 +193,7 @@ def fake_track(monkeypatch, recs, stop=KeyboardInterrupt):
 
 
 def track_to(model, csv, rrd):
-    src = SimpleNamespace(count=10, fps=10.0, frames=lambda first, last, every: iter(()))
+    src = SimpleNamespace(count=10, fps=10.0, frames=lambda first, last, every, **kw: iter(()))
     tracker = SimpleNamespace(model=model, camera=model.camera)
     result = pipeline.track(pipeline.TrackJob(src, tracker, csv, rerun=rrd))
     if result.interrupted is not None:

@@ -22,7 +22,7 @@ from .. import refine, runtime, signals
 from ..camera import Camera
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from ..fileio import atomic_path, video_frames_written
-from ..frames import Frame, FrameSource, gray_frames, matching_camera, prefetch
+from ..frames import Frame, FrameSource, matching_camera, prefetch
 from ..logs import log
 from ..model import LandmarkModel
 from ..plotting import draw_overlay
@@ -124,7 +124,9 @@ def tracked_records(
 ) -> Iterator[FrameRecord]:
     """The tracker's records of `frames`, each smoothed (`smoothing.lag` frames late;
     default settings when None, lag 0: each frame's own pose): what `mirage track` writes,
-    for callers that hold the frames themselves (benchmarks, tests)."""
+    for callers that hold the frames themselves (benchmarks, tests; the CLI's frames are
+    `FrameSource.frames(luma=True)`: gray from a video's luma plane, a grey level or two
+    off BGR2GRAY of its colour)."""
     return smoothed(track_frames(frames, tracker, keep_images), smoothing or SmoothSettings())
 
 
@@ -231,11 +233,11 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
             rrd = stack.enter_context(TrackRecording(job.rerun, tracker.model, camera))
         bar = stack.enter_context(reporter.progress(total, "tracking"))
         keep = ov is not None or rrd is not None  # the overlays draw on the colour image
-        # decoded (and grayed, without overlays) in the reader thread, a few frames ahead; not
-        # from the luma plane (frames(luma=True)) until the overlays' runs can track the same
-        # gray: --overlay must not change the poses (test_deterministic_with_overlay)
-        frames = src.frames(job.first, job.last, job.every)
-        frames = prefetch(frames if keep else gray_frames(frames))
+        # decoded and grayed in the reader thread, a few frames ahead; a video's gray straight
+        # from its luma plane (1080p: no conversion to BGR and back), the same with overlays
+        # (their colour from a second decoder): --overlay never changes the poses
+        # (test_deterministic_with_overlay)
+        frames = prefetch(src.frames(job.first, job.last, job.every, luma=True, colour=keep))
 
         def emit(records):
             for rec in records:

@@ -319,8 +319,8 @@ def track_frames(
         if to_world is not None:
             _to_world(rec, to_world)
         rec.ms = round((time.perf_counter() - t0) * 1000, 2)
-        if keep_images:
-            rec.image = f.image
+        if keep_images:  # the colour the gray came from, when the source kept it
+            rec.image = f.colour if f.colour is not None else f.image
         return rec
 
     try:
