@@ -620,6 +620,27 @@ def test_view_from_45_deg_above_the_keyframes_is_found(sample_model):
     assert found["plain"] <= 8, found
 
 
+def test_views_from_55_60_deg_above_are_found_by_proposals(sample_model):
+    """Higher still, 55-60 deg above the sample's keyframes, the squashed views leave too
+    few right matches among the recognised keyframes' for RANSAC's unique answer; RANSAC
+    over looser matches still proposes the pose, and guided matching around a proposal
+    (then its box, as while tracking) tells a right one from a wrong one. From nothing,
+    with proposals: at least 7 of the 12 views ok, each within 2 cm and 1 deg; without
+    them (`proposals=0`): at most 5. No view is ok anywhere else."""
+    cam, views = _views_from_above([55, 60], [15, 75, 135, 195, 255, 315])
+    model = LandmarkModel.load(sample_model)
+    found = {}
+    for rounds in (2, 0):
+        ok = 0
+        for pose, gray in views:
+            rec = Tracker(model, cam, TrackSettings(proposals=rounds)).process(gray)
+            if rec.status == Status.OK:
+                assert rec.pose.distance_to(pose) < 0.02 and rec.pose.angle_to(pose) < 1.0
+                ok += 1
+        found[rounds] = ok
+    assert found[2] >= 7 and found[0] <= 5, found
+
+
 def test_a_hint_from_an_ambiguous_stretch_needs_a_relocalisation(sample_model):
     """Lost, with relocalisations that found two places (`ambiguous`), then one that was
     only `uncertain`: its pose is where to look next, but guided matching finds what a

@@ -5,6 +5,8 @@ and the confirmation a hint from an uncertain relocalisation needs after an ambi
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..camera import Camera
@@ -13,6 +15,12 @@ from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
 from ..solver import PoseEstimate, solve_pose
 from .settings import TrackSettings
+
+# relocalisation by proposals (`_relocalise_by_proposals`)
+PROPOSE_RATIO = 0.9  # a looser ratio test: more right matches among more wrong ones
+PROPOSE_ITERATIONS = 2000  # RANSAC's: ~1 all-right 4-sample at 15% right matches
+PROPOSE_VERIFY = 8  # guided inliers a proposal needs before its box is searched
+PROPOSE_LONG = 4  # a long loss: proposals at every 4th whole-frame search
 
 
 def unambiguous_pose(
@@ -118,19 +126,111 @@ class Relocalisation:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.FEW_FEATURES)
         return self._relocalise(kps, desc)
 
-    def _relocalise(self, kps, desc) -> FrameRecord:
+    def _relocalise(self, kps, desc, gray=None) -> FrameRecord:
         """Lost: recognise, match, and accept a pose only when the evidence is unambiguous.
         No pose from the keyframes as they are: again with their squashed views (a camera
-        far above them, tilt.py)."""
+        far above them, tilt.py); still none, with the whole frame's features (`gray`
+        given) and on the proposal schedule: by proposals (`_relocalise_by_proposals`)."""
         res = self._relocalise_with(kps, desc, False)
         if res.status != Status.LOST or not self._has_tilted:
             return res  # found, or ambiguous: more matches to one side do not settle that
-        again = self._relocalise_with(kps, desc, True)
-        return again if again.status in (Status.OK, Status.UNCERTAIN) else res
+        cands = self._recognised(desc, True)
+        again = self._relocalise_with(kps, desc, True, cands)
+        if again.status in (Status.OK, Status.UNCERTAIN):
+            return again
+        if gray is not None and again.status == Status.LOST and self._propose_now():
+            proposed = self._relocalise_by_proposals(gray, kps, desc, cands)
+            if proposed is not None:
+                return proposed
+        return res
 
-    def _relocalise_with(self, kps, desc, tilted: bool) -> FrameRecord:
+    def _propose_now(self) -> bool:
+        """Proposals cost 0.1-0.2 s: at every whole-frame search of a short loss, and at
+        every `PROPOSE_LONG`-th of a long one (a look-away is searched for seconds)."""
+        lost, s = self.lost_run, self.settings
+        return lost <= s.long_lost or lost % (PROPOSE_LONG * 2 * s.relocalise_every) == 0
+
+    def _recognised(self, desc, tilted: bool) -> list[int]:
         found = self.model.recognize(desc, top_k=self.settings.global_keyframes, tilted=tilted)
-        cands = [i for i, _ in found]
+        return [i for i, _ in found]
+
+    def _relocalise_by_proposals(self, gray, kps, desc, cands) -> FrameRecord | None:
+        """A view far from every keyframe's (a drone 45-60 deg above a model made on foot):
+        descriptor matching over the recognised keyframes keeps too few right matches for
+        `unambiguous_pose` (above 2: 6-15 right of 60-90 at ratio 0.9), but a long RANSAC
+        over them still proposes the pose, and guided matching around a proposal tells:
+        a right one gathers 9-14 inliers of the frame's features, a wrong one 4-6. A
+        proposal that gathers `PROPOSE_VERIFY` is then searched as while tracking (its
+        box detected, upsampled when small) and must pass the relocalisation's gate
+        (`min_inliers`, chance, landmark). Two distinct proposals that pass: ambiguous."""
+        if not cands:
+            return None
+        X_all, d_all, kf_of, pid_all = self._candidates(cands, set(cands))
+        anywhere = np.zeros((len(X_all), 2))
+        qi, ti = guided_match(kps, desc, anywhere, d_all, pid_all, np.inf, PROPOSE_RATIO)
+        unique = self.votes[pid_all[ti]].copy()
+        uv, X = kps[qi].astype(np.float64), X_all[ti]
+        s = self.settings
+        ransac = replace(s.ransac, iterations=PROPOSE_ITERATIONS, confidence=0.99999)
+        passed = []
+        for _ in range(s.proposals):
+            if unique.sum() < 6:
+                break
+            votes = np.bincount(kf_of[ti[unique]], minlength=len(self.model.keyframes))
+            ref = self.model.keyframes[int(np.argmax(votes))].pose
+            est = solve_pose(
+                X[unique], uv[unique], self.camera, ref, method=s.method, ransac=ransac,
+                refine=s.refine,
+            )  # fmt: skip
+            if not est.success:
+                break
+            unique[np.flatnonzero(unique)[est.inliers]] = False  # the next round: the rest
+            found = self._verified(gray, kps, desc, est.pose)
+            if found is not None:
+                passed.append(found)
+        if not passed:
+            return None
+        passed.sort(key=lambda f: -f[0].inliers)
+        best = passed[0]
+        for other in passed[1:]:
+            if other[0].inliers >= s.second_hypothesis * best[0].inliers and (
+                other[1].pose.distance_to(best[1].pose) > s.distinct_m
+                or other[1].pose.angle_to(best[1].pose) > s.distinct_deg
+            ):
+                return FrameRecord(Status.AMBIGUOUS, mode="relocalise", reason=Reason.AMBIGUOUS)
+        res, est, uv, X, kf, land, scale = best
+        self._at_scale(scale)  # the flow from here keeps the scale its points were found at
+        self._uncertain_pose = est.pose if res.status == Status.UNCERTAIN else None
+        return self._accept(res, est, uv, X, kf, land)
+
+    def _verified(self, gray, kps, desc, pose: Pose):
+        """A proposal's pose, checked as described in `_relocalise_by_proposals`: (record,
+        estimate, uv, X, keyframe, on-landmark, scale) when it passes the gate, else None."""
+        r = self.settings.guided_radius_px
+        g = self._guided_solve(kps, desc, pose, 2 * r)
+        if g is None or not g[0].success:
+            return None
+        g = self._guided_solve(kps, desc, g[0].pose, r)
+        if g is None or not g[0].success or g[0].inliers.sum() < PROPOSE_VERIFY:
+            return None
+        box = self._model_box(g[0].pose, gray.shape)  # None: most of the frame
+        if box is None:
+            scale = self.full_scale
+        else:
+            kps, desc = self._box_features(gray, box, self.detector)
+            scale = max(1.0, box[4])
+        self._at_scale(scale)
+        g = self._guided_solve(kps, desc, g[0].pose, r)
+        if g is None or not g[0].success:
+            return None
+        est, uv, X, kf, land = g
+        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv))
+        if res.status not in (Status.OK, Status.UNCERTAIN):
+            return None
+        return res, est, uv, X, kf, land, scale
+
+    def _relocalise_with(self, kps, desc, tilted: bool, cands=None) -> FrameRecord:
+        cands = self._recognised(desc, tilted) if cands is None else cands
         if not cands:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_RECOGNISED)
         X_all, d_all, kf_of, pid_all = self._candidates(cands, set(cands) if tilted else ())

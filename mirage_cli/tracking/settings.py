@@ -58,6 +58,8 @@ class TrackSettings:
     # nearest keyframe (a sharper camera than the model's, or nearer): the detection box
     # is shrunk by that factor / SHRINK_MARGIN first (the keyframes hold no finer
     # features; SIFT's time goes with the pixels)
+    proposals: int = 2  # relocalisation that found nothing: RANSAC proposals from looser
+    # matches, each checked by guided matching around it (0: none; relocalise.py)
     second_hypothesis: float = 0.5  # relocalisation: a distinct pose with this share of the
     # first's inliers makes the frame ambiguous (lost)
     distinct_m: float = 0.10  # two poses further apart than this (or distinct_deg) are

@@ -263,7 +263,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             res = self._confirm(self._guided(kps, desc, pred), gray, (kps, desc))
             if res.ok or res.status == Status.UNCERTAIN:  # as above
                 return res
-        return self._relocalise(kps, desc)  # also when the prediction was too far off
+        return self._relocalise(kps, desc, gray)  # also when the prediction was too far off
 
     def _accept(self, res: FrameRecord, est: PoseEstimate, uv, X, kf: int, land) -> FrameRecord:
         res.keyframe = self.model.keyframes[kf].name
