@@ -162,7 +162,8 @@ class Relocalisation:
         a right one gathers 9-14 inliers of the frame's features, a wrong one 4-6. A
         proposal that gathers `PROPOSE_VERIFY` is then searched as while tracking (its
         box detected, upsampled when small) and must pass the relocalisation's gate
-        (`min_inliers`, chance, landmark). Two distinct proposals that pass: ambiguous."""
+        (`min_inliers` of matches that may vote, chance among them, landmark). Two
+        distinct proposals that pass: ambiguous."""
         if not cands:
             return None
         X_all, d_all, kf_of, pid_all = self._candidates(cands, set(cands))
@@ -223,8 +224,10 @@ class Relocalisation:
         g = self._guided_solve(kps, desc, g[0].pose, r)
         if g is None or not g[0].success:
             return None
-        est, uv, X, kf, land = g
-        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv))
+        est, uv, X, kf, land, votes = g
+        if (est.inliers & votes).sum() < self.settings.min_inliers:
+            return None  # as unambiguous_pose: repeated texture and the ground never decide
+        res = self._gate(est, len(uv), "relocalise", False, land, (X, uv), votes)
         if res.status not in (Status.OK, Status.UNCERTAIN):
             return None
         return res, est, uv, X, kf, land, scale

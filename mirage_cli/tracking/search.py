@@ -69,19 +69,20 @@ class GuidedSearch:
         first = self._guided_solve(kps, desc, pred, radius)
         if first is None:
             return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_MATCHES)
-        est, uv, X, kf, land = first
+        est, uv, X, kf, land, _ = first
         if est.success and est.inliers.sum() < 0.5 * len(uv):
             again = self._guided_solve(kps, desc, est.pose, radius / 4)
             if again is not None and again[0].success:
                 if again[0].inliers.sum() > est.inliers.sum():
-                    est, uv, X, kf, land = again
+                    est, uv, X, kf, land, _ = again
                     radius /= 4
         res = self._gate(est, len(uv), "detect", True, land, (X, uv), radius_px=radius)
         return self._accept(res, est, uv, X, kf, land)
 
     def _guided_solve(self, kps, desc, pred: Pose, radius: float):
         """Guided matches within `radius` of where `pred` projects the nearby keyframes'
-        points, and the pose from them (None: too few matches)."""
+        points, and the pose from them: (estimate, uv, X, keyframe, on-landmark, may vote)
+        per match (None: too few matches)."""
         cands = list(self.model.nearest_keyframes(pred, self.settings.local_keyframes))
         X_all, d_all, kf_of, pid_all = self._candidates(cands, self._below(pred, cands))
         Xc = pred.transform(X_all)
@@ -104,7 +105,8 @@ class GuidedSearch:
             ransac=self.settings.ransac,
             refine=self.settings.refine,
         )
-        return est, uv, X, kf, self.on_landmark[pid_all[ci]]
+        pid = pid_all[ci]
+        return est, uv, X, kf, self.on_landmark[pid], self.votes[pid]
 
     def _candidates(self, cands, tilted=()):
         """(X, descriptors, keyframe, point id) of the candidate keyframes' linked features;
