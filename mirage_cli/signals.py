@@ -10,11 +10,13 @@ is installed before the rest of the program is imported.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import sys
+import threading
 
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
-_state = {"deferring": 0, "pending": None, "raised": None}
+_state = {"deferring": 0, "pending": None, "raised": None, "again": None}
 
 
 class Terminated(KeyboardInterrupt):
@@ -32,7 +34,39 @@ def _handler(signum, frame):
         _state["pending"] = _state["pending"] or signum
         return
     _state["raised"] = signum  # until `check` or the CLI's top level sees it
+    if _in_import(frame):
+        _again_soon(signum)
+        return
+    _state["again"] = None
     raise _exception(signum)
+
+
+def _in_import(frame) -> bool:
+    """The main thread is inside an import. One that C code started (a library's lazy
+    import) hands our exception back to that C code, which may print its traceback and
+    drop it (seen once in 50 interrupted start-ups: "Traceback ... _find_and_load ...
+    KeyboardInterrupt" before the one line)."""
+    for _ in range(64):
+        if frame is None:
+            return False
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _again_soon(signum: int) -> None:
+    """The same signal again in 20 ms, raised then if the import is over (else again),
+    unless it was raised meanwhile (`check`)."""
+    _state["again"] = signum
+
+    def again():
+        if _state["again"] == signum:
+            os.kill(os.getpid(), signum)
+
+    t = threading.Timer(0.02, again)
+    t.daemon = True
+    t.start()
 
 
 def check() -> None:
@@ -43,12 +77,13 @@ def check() -> None:
     signal seen here was swallowed."""
     signum, _state["raised"] = _state["raised"], None
     if signum:
+        _state["again"] = None
         raise _exception(signum)
 
 
 def seen() -> None:
     """The interrupt reached the top level (or a caller that handles it): nothing pending."""
-    _state["raised"] = None
+    _state["raised"] = _state["again"] = None
 
 
 def _unraisable(unraisable) -> None:

@@ -1228,6 +1228,32 @@ def test_a_swallowed_signal_still_interrupts(monkeypatch):
         signals.check()  # raised once only
 
 
+def test_a_signal_during_an_import_is_raised_once_the_import_is_over(tmp_path, monkeypatch):
+    """A signal that lands inside an import is held (C code that started the import could
+    print the exception and drop it: one interrupted start-up in 50 printed a traceback)
+    and raised by the same signal sent again 20 ms later, once the import is over: the
+    module is whole, the interrupt still comes, once."""
+    from mirage_cli import signals
+
+    (tmp_path / "slow_mod_under_signal.py").write_text(
+        "import os, signal, time\n"
+        "os.kill(os.getpid(), signal.SIGTERM)\n"
+        "time.sleep(0.2)\n"
+        "WHOLE = True\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with own_signal_handlers():
+        signals.install()
+        with pytest.raises(signals.Terminated):
+            import slow_mod_under_signal  # noqa: F401
+
+            time.sleep(2.0)  # the signal again, outside the import
+        assert sys.modules["slow_mod_under_signal"].WHOLE
+        signals.seen()  # as the CLI's top level, having reported it
+        time.sleep(0.1)
+        signals.check()  # raised once only: no third signal came
+
+
 def test_console_script_installs_the_handlers_before_importing_the_program():
     """The `mirage` script's entry point is the light __main__.run (signals first), not
     cli.main (whose module imports click and the config reader before any handler)."""
