@@ -119,12 +119,11 @@ class FlowTracking:
         self._at_scale(scale)  # the flowed points keep their detection's pixel limits
         flowed = self._flow(gray)
         self._uncertain_pose = found
-        s = self.settings
-        if flowed is None or not flowed.ok or (
-            found is not None
-            and (found.distance_to(flowed.pose) > s.distinct_m
-                 or found.angle_to(flowed.pose) > s.distinct_deg)
-        ):  # fmt: skip
+        if (
+            flowed is None
+            or not flowed.ok
+            or (found is not None and self.settings.distinct(found, flowed.pose))
+        ):
             return res
         # the points are followed from this frame on, nearer the views to come than the
         # anchor's; they keep its errors, so its number (the smoother's anchor) stays

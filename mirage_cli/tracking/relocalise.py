@@ -58,10 +58,7 @@ def unambiguous_pose(
         if (
             second.success
             and second.inliers.sum() >= max(s.min_inliers, s.second_hypothesis * n1)
-            and (
-                second.pose.distance_to(first.pose) > s.distinct_m
-                or second.pose.angle_to(first.pose) > s.distinct_deg
-            )
+            and s.distinct(second.pose, first.pose)
         ):
             return Status.AMBIGUOUS
     err = np.linalg.norm(camera.project(X, first.pose) - uv, axis=1)
@@ -162,7 +159,7 @@ class Relocalisation:
         descriptor matching over the recognised keyframes keeps too few right matches for
         `unambiguous_pose` (above 2: 6-15 right of 60-90 at ratio 0.9), but a long RANSAC
         over them still proposes the pose, and guided matching around a proposal tells:
-        a right one gathers 9-14 inliers of the frame's features, a wrong one 4-6. A
+        a right one gathers 8-14 inliers of the frame's features, a wrong one 4-6. A
         proposal that gathers `PROPOSE_VERIFY` is then searched as while tracking (its
         box detected, upsampled when small) and must pass the relocalisation's gate
         (`min_inliers` of matches that may vote, chance among them, landmark). Two
@@ -180,8 +177,8 @@ class Relocalisation:
         for _ in range(s.proposals):
             if unique.sum() < 6:
                 break
-            votes = np.bincount(kf_of[ti[unique]], minlength=len(self.model.keyframes))
-            ref = self.model.keyframes[int(np.argmax(votes))].pose
+            per_kf = np.bincount(kf_of[ti[unique]], minlength=len(self.model.keyframes))
+            ref = self.model.keyframes[int(np.argmax(per_kf))].pose
             est = solve_pose(
                 X[unique], uv[unique], self.camera, ref, method=s.method, ransac=ransac,
                 refine=s.refine,
@@ -197,9 +194,8 @@ class Relocalisation:
         passed.sort(key=lambda f: -f[0].inliers)
         best = passed[0]
         for other in passed[1:]:
-            if other[0].inliers >= s.second_hypothesis * best[0].inliers and (
-                other[1].pose.distance_to(best[1].pose) > s.distinct_m
-                or other[1].pose.angle_to(best[1].pose) > s.distinct_deg
+            if other[0].inliers >= s.second_hypothesis * best[0].inliers and s.distinct(
+                other[1].pose, best[1].pose
             ):
                 return FrameRecord(Status.AMBIGUOUS, mode="relocalise", reason=Reason.AMBIGUOUS)
         res, est, uv, X, kf, land, scale = best

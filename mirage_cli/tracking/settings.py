@@ -69,6 +69,10 @@ class TrackSettings:
     max_sigma_rot_deg: float = 1.5
     max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance
 
+    def distinct(self, a, b) -> bool:
+        """Two poses are different hypotheses (`distinct_m` apart or `distinct_deg` turned)."""
+        return a.distance_to(b) > self.distinct_m or a.angle_to(b) > self.distinct_deg
+
     def at_scale(self, f: float) -> TrackSettings:
         """These settings for features detected on an image shrunk by `f` (>= 1; a video
         sharper than the model's keyframes): the limits that measure a keypoint's or a
