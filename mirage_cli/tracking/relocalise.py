@@ -22,6 +22,13 @@ PROPOSE_ITERATIONS = 2000  # RANSAC's: ~1 all-right 4-sample at 15% right matche
 PROPOSE_VERIFY = 8  # guided inliers a proposal needs before its box is searched
 PROPOSE_LONG = 4  # a long loss: proposals at every 4th whole-frame search
 
+# the rival side (`_rivalled`)
+RIVAL_RANKED = 8  # recognition's ranking, this deep, may hold a rival place
+RIVAL_SHARE = 0.25  # a rival pose with this share of the inliers makes the frame ambiguous
+RIVAL_APART_M = 0.25  # ...when it is this far from the pose
+RIVAL_APART_DEG = 10.0  # ...or turned this much
+RIVAL_VAGUE = 2.5  # an uncertain rival counts within this many times the gate's limits
+
 
 def unambiguous_pose(
     X: np.ndarray,
@@ -80,6 +87,21 @@ def unambiguous_pose(
     return final
 
 
+def _measured(rec: FrameRecord) -> bool:
+    """ok, or uncertain by at most `RIVAL_VAGUE` times the gate's limits: a place measured
+    about as well as an ok pose (a far landmark's keyframes, each on its own, also give
+    vague poses metres apart: 3-11% of the range, 2.6-9x the limit, in the far family)."""
+    m = rec.measurement
+    if rec.ok:
+        return True
+    if rec.status != Status.UNCERTAIN or m is None:
+        return False
+    return (
+        rec.sigma_pos_m <= RIVAL_VAGUE * m.max_sigma_pos_m
+        and rec.sigma_rot_deg <= RIVAL_VAGUE * m.max_sigma_rot_deg
+    )
+
+
 class Relocalisation:
     """Relocalisation when lost (a mixin of Tracker)."""
 
@@ -131,11 +153,12 @@ class Relocalisation:
         res = self._relocalise_with(kps, desc, False)
         if res.status != Status.LOST or not self._has_tilted:
             return res  # found, or ambiguous: more matches to one side do not settle that
-        cands = self._recognised(desc, True)
-        again = self._relocalise_with(kps, desc, True, cands)
+        ranked = self._recognised(desc, True)
+        again = self._relocalise_with(kps, desc, True, ranked)
         if again.status in (Status.OK, Status.UNCERTAIN):
             return again
         if gray is not None and again.status == Status.LOST and self._propose_now():
+            cands = ranked[: self.settings.global_keyframes]
             proposed = self._relocalise_by_proposals(gray, kps, desc, cands)
             if proposed is not None:
                 return proposed
@@ -151,8 +174,10 @@ class Relocalisation:
         return lost % every == 0
 
     def _recognised(self, desc, tilted: bool) -> list[int]:
-        found = self.model.recognize(desc, top_k=self.settings.global_keyframes, tilted=tilted)
-        return [i for i, _ in found]
+        """Recognition's ranking of the keyframes: its first `global_keyframes` are matched,
+        the rest may hold a rival side (`_rivalled`)."""
+        top = max(self.settings.global_keyframes, RIVAL_RANKED)
+        return [i for i, _ in self.model.recognize(desc, top_k=top, tilted=tilted)]
 
     def _relocalise_by_proposals(self, gray, kps, desc, cands) -> FrameRecord | None:
         """A view far from every keyframe's (a drone 45-60 deg above a model made on foot):
@@ -231,8 +256,56 @@ class Relocalisation:
             return None
         return res, est, uv, X, kf, land, scale
 
-    def _relocalise_with(self, kps, desc, tilted: bool, cands=None) -> FrameRecord:
-        cands = self._recognised(desc, tilted) if cands is None else cands
+    def _relocalise_with(self, kps, desc, tilted: bool, ranked=None) -> FrameRecord:
+        """Relocalise on recognition's first `global_keyframes` (`ranked`: its ranking, found
+        when None); a pose that a keyframe of another side rivals is ambiguous."""
+        ranked = self._recognised(desc, tilted) if ranked is None else ranked
+        found = self._solve_with(kps, desc, tilted, ranked[: self.settings.global_keyframes])
+        if isinstance(found, FrameRecord):
+            return found
+        res, est, uv, X, kf, land = found
+        if res.ok and self._rivalled(kps, desc, tilted, ranked, res, est):
+            self._uncertain_pose = None
+            return FrameRecord(
+                Status.AMBIGUOUS, matches=len(uv), inliers=res.inliers, mode="relocalise",
+                reason=Reason.AMBIGUOUS,
+            )  # fmt: skip
+        return self._accept(res, est, uv, X, kf, land)
+
+    def _rivalled(self, kps, desc, tilted: bool, ranked, res: FrameRecord, est) -> bool:
+        """Does another place explain the frame about as well? Matching over keyframes of
+        two sides loses the features that look alike on both to the ratio test, so a
+        look-alike side can win with what is left: in the report seed near 1004 (two faces
+        cut from one photograph) the first relocalisation was 174 deg off with 106
+        inliers, while the true side's keyframe, ranked 3rd-8th, matched on its own gave
+        57, and 48 ok poses followed the wrong side. So each ranked keyframe is matched
+        on its own: a pose `RIVAL_APART_M` / `RIVAL_APART_DEG` away, measured about as
+        well (`_measured`), with `RIVAL_SHARE` of the inliers is a rival, and the frame
+        ambiguous (a pose from one keyframe's matches may be a little off; a rival is
+        another place)."""
+        pose, held = est.pose, self._uncertain_pose
+        try:
+            for k in ranked:
+                found = self._solve_with(kps, desc, tilted, [k])
+                if isinstance(found, FrameRecord):
+                    continue  # (ambiguous within one keyframe: repeated texture of its own)
+                rival, other = found[0], found[1].pose
+                if (
+                    _measured(rival)
+                    and rival.inliers >= RIVAL_SHARE * res.inliers
+                    and (
+                        other.distance_to(pose) > RIVAL_APART_M
+                        or other.angle_to(pose) > RIVAL_APART_DEG
+                    )
+                ):
+                    return True
+            return False
+        finally:
+            self._uncertain_pose = held
+
+    def _solve_with(self, kps, desc, tilted: bool, cands):
+        """The relocalisation's gated record on `cands` and what `_accept` needs (record,
+        estimate, uv, X, keyframe, on-landmark), or the LOST / AMBIGUOUS record."""
         if not cands:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.NOT_RECOGNISED)
         X_all, d_all, kf_of, pid_all = self._candidates(cands, set(cands) if tilted else ())
@@ -258,4 +331,4 @@ class Relocalisation:
             lost.reason = Reason.AMBIGUOUS if est == Status.AMBIGUOUS else Reason.FEW_INLIERS
             return lost
         res = self._gate(est, len(uv), "relocalise", False, land, (X, uv), unique)
-        return self._accept(res, est, uv, X, kf, land)
+        return res, est, uv, X, kf, land
