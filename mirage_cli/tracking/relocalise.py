@@ -258,7 +258,8 @@ class Relocalisation:
 
     def _relocalise_with(self, kps, desc, tilted: bool, ranked=None) -> FrameRecord:
         """Relocalise on recognition's first `global_keyframes` (`ranked`: its ranking, found
-        when None); a pose that a keyframe of another side rivals is ambiguous."""
+        when None); an ok pose that one of its keyframes, matched on its own, places
+        elsewhere is ambiguous (`_rivalled`)."""
         ranked = self._recognised(desc, tilted) if ranked is None else ranked
         found = self._solve_with(kps, desc, tilted, ranked[: self.settings.global_keyframes])
         if isinstance(found, FrameRecord):
