@@ -34,14 +34,16 @@ def _orbit(n, radius=4.0, turns_per_s=0.15, start=0.0):
     return out
 
 
-def _measure(truth, rng, anchors=None, scale=1.0, repeat_error=False):
+def _measure(truth, rng, anchors=None, scale=1.0, repeat_error=False, rho=0.0):
     """Records whose poses carry the noise their covariance states (left perturbation
-    exp([w, v]) T_CW, as the solver's); `anchors[i]`: the detection frame i flows from."""
+    exp([w, v]) T_CW, as the solver's); `anchors[i]`: the detection frame i flows from;
+    `rho`: each new error's correlation with the one before (AR(1), same variance)."""
     cov = np.diag([SIG_W**2] * 3 + [SIG_V**2] * 3) * scale**2
     recs, e = [], None
     for i, T in enumerate(truth):
         if e is None or not repeat_error or anchors[i] == i:
-            e = rng.multivariate_normal(np.zeros(6), cov)
+            new = rng.multivariate_normal(np.zeros(6), cov)
+            e = new if e is None else rho * e + np.sqrt(1 - rho**2) * new
         R = cv2.Rodrigues(e[:3])[0]
         noisy = Pose(R @ T.R, R @ T.t + e[3:])
         m = Measurement(noisy, cov, np.zeros((6, 6)), anchors[i] if anchors else i)
@@ -77,10 +79,12 @@ def test_rotation_log_and_exp_invert_each_other_near_zero_and_pi():
 
 
 def test_independent_frames_get_more_accurate_and_stay_honest():
+    """Told that its frames err independently (`min_run=1`), the smoother averages them
+    down by the full square root of the window."""
     truth = _orbit(150)
     recs = _measure(truth, np.random.default_rng(2))
     raw_pe, raw_re = _errors(recs, truth)
-    out = list(smoothed(recs, SmoothSettings()))
+    out = list(smoothed(recs, SmoothSettings(min_run=1)))
     assert [r.frame for r in out] == list(range(150))
     assert all(r.status == Status.OK for r in out)
     pe, re = _errors(out, truth)
@@ -91,6 +95,26 @@ def test_independent_frames_get_more_accurate_and_stay_honest():
     honesty_pos = np.sqrt(np.mean(pe**2)) / np.sqrt(np.mean(sp**2))
     honesty_rot = np.sqrt(np.mean(np.radians(re) ** 2)) / np.sqrt(np.mean(sr**2))
     assert 0.6 < honesty_pos < 1.3 and 0.6 < honesty_rot < 1.3, (honesty_pos, honesty_rot)
+
+
+def test_detections_that_err_alike_are_not_averaged_down_as_independent():
+    """Every frame a detection, each error correlated 0.9 with the one before (far
+    detections in a row see the same few features: their window means varied 3x as much
+    as independent ones). Counted as independent, the smoothed sigma is too small; with
+    each pose at most 1/min_run of a measurement it covers the error."""
+    truth = _orbit(150)
+    honesty = {}
+    for min_run in (1, SmoothSettings.min_run):
+        pe, sp = [], []
+        for seed in range(8):
+            recs = _measure(truth, np.random.default_rng(40 + seed), rho=0.9)
+            out = list(smoothed(recs, SmoothSettings(min_run=min_run)))
+            pe.append(_errors(out, truth)[0])
+            sp.append([r.sigma_pos_m for r in out])
+        pe, sp = np.concatenate(pe), np.concatenate(sp)
+        honesty[min_run] = np.sqrt(np.mean(pe**2)) / np.sqrt(np.mean(sp**2))
+    assert honesty[1] > 1.15, honesty
+    assert 0.8 < honesty[SmoothSettings.min_run] < 1.15, honesty
 
 
 def test_a_flowed_run_counts_as_one_measurement():
@@ -174,7 +198,7 @@ def test_an_uncertain_pose_becomes_ok_when_its_neighbours_pin_it():
     truth = _orbit(41)
     recs = _measure(truth, np.random.default_rng(7))
     vague = _measure(truth[20:21], np.random.default_rng(8), scale=3.0)[0]
-    limit = 0.5 * vague.sigma_pos_m
+    limit = 0.6 * vague.sigma_pos_m  # 1.8x its neighbours' (each a third of a measurement)
     m = vague.measurement
     vague.measurement = Measurement(m.pose, m.cov, m.cov_shared, 20, max_sigma_pos_m=limit)
     vague.status, vague.pose, vague.frame, vague.time_s = Status.UNCERTAIN, None, 20, 20 / FPS
@@ -244,14 +268,15 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
     """Every orientation the identity, so the problem is linear: the smoothed pose and
     covariance of each frame are the MAP and the inverse information of the whole window
     written out densely here: each pose's information (divided by the frames of its
-    anchor), plus a second difference of each frame triple weighted by the white-noise
-    acceleration prior, q = sigma_a^2 dt^3 (rotation in rad). In the 9 frames one has no
-    pose and two share an anchor (a flowed frame); 3 frames are the shortest with a prior."""
+    anchor, at least min_run), plus a second difference of each frame triple weighted by
+    the white-noise acceleration prior, q = sigma_a^2 dt^3 (rotation in rad). In the 9
+    frames one has no pose and two share an anchor (a flowed frame); 3 frames are the
+    shortest with a prior."""
     from mirage_cli.tracking.smooth import WorldMeasurement, smooth_window
 
     rng = np.random.default_rng(5)
     n, dt = len(anchors), 1 / 30
-    s = SmoothSettings(accel_m_s2=3.0, ang_accel_deg_s2=40.0)  # (3: 3^2 != 2 * 3)
+    s = SmoothSettings(accel_m_s2=3.0, ang_accel_deg_s2=40.0, min_run=1.5)  # (3: 3^2 != 2 * 3)
     window = []
     for i, anchor in enumerate(anchors):
         if anchor is None:
@@ -269,7 +294,7 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
     H, b = np.zeros((6 * n, 6 * n)), np.zeros(6 * n)
     for i, m in enumerate(window):
         if m is not None:
-            runs = sum(x is not None and x.anchor == m.anchor for x in window)
+            runs = max(sum(x is not None and x.anchor == m.anchor for x in window), s.min_run)
             H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] += m.info / runs
             b[6 * i : 6 * i + 6] += m.info / runs @ np.r_[0, 0, 0, m.center]
     for i in range(n - 2):
@@ -287,10 +312,12 @@ def test_a_window_is_the_dense_map_of_its_linear_gaussian_problem(anchors, ks):
     if None in window:
         assert smooth_window(window, window.index(None), dt, s) is None  # no pose of its own
     assert smooth_window([None, window[1], None], 1, dt, s) is None  # no other pose
-    # two poses and no prior (it needs three frames): each keeps its own pose and covariance
+    # two poses and no prior (it needs three frames): each keeps its own pose, and its
+    # covariance is its own times min_run (a pose counts as 1/min_run of a measurement)
     pose, cov = smooth_window(window[:2], 0, dt, s)
     np.testing.assert_allclose(pose.center, window[0].center, atol=1e-12)
-    np.testing.assert_allclose(cov, np.linalg.inv(window[0].info), rtol=1e-7, atol=1e-15)
+    np.testing.assert_allclose(cov, s.min_run * np.linalg.inv(window[0].info), rtol=1e-7,
+                               atol=1e-15)  # fmt: skip
 
 
 def _M_of(pose, sig_w=SIG_W, sig_v=SIG_V):

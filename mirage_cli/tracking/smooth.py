@@ -12,7 +12,11 @@ changed afterwards, as `track.run` promises.
 What keeps it honest:
 - Flowed frames reuse the points of the detection they follow (their anchor), so their
   errors are correlated: the k frames of one anchor in the window count as one
-  measurement (each covariance times k).
+  measurement (each covariance times k). Detections in a row are not independent either:
+  they see the same few features of a far landmark from nearly the same place. On the
+  far tuning scenes the mean of a window's detections (about 12) varied 3x as much as
+  independent errors would (whitened errors: correlation 0.3 at one frame, still 0.15 at
+  ten), so every pose counts as at most 1/`min_run` of a measurement.
 - The model's own error is shared by every frame that sees the same points; it is not
   averaged down but added back to the smoothed covariance. So is a share (`correlated`)
   of each frame's own covariance: detections in a row see the same features from nearly
@@ -53,6 +57,8 @@ class SmoothSettings:
     max_gap: int = 3  # more frames in a row without a pose split the trajectory
     min_side: int = 3  # fewer poses than this before or after a frame: it stays as tracked
     outlier_chi2: float = 22.46  # chi-square, 6 dof, p = 0.999
+    min_run: float = 3.0  # a pose counts as at most 1/min_run of a measurement: far
+    # detections in a row err alike (see the module's docstring)
     correlated: float = 0.1  # share of a frame's own covariance its neighbours share,
     # not averaged down (random far scenes, tuning seeds: 0.1 ends 3.6-sigma runs)
     max_prior_excess: float = 25.0  # a window whose motion costs the prior more than this
@@ -198,7 +204,8 @@ def smooth_window(window: list[WorldMeasurement | None], k: int, dt: float, s: S
     Rm = np.stack([m.R_wc for m in meas])
     cm = np.stack([m.center for m in meas])
     info_raw = np.stack([m.info for m in meas])
-    info = info_raw / np.array([runs[m.anchor] for m in meas], float)[:, None, None]
+    count = np.array([max(runs[m.anchor], s.min_run) for m in meas], float)
+    info = info_raw / count[:, None, None]
     # reference: the poses, frames without one interpolated between their neighbours
     n = len(window)
     R0 = np.zeros((n, 3, 3))
