@@ -42,7 +42,6 @@ class Reason(str, Enum):
     BEHIND = "behind"  # the landmark would be behind the camera
     JUMP = "jump"  # the pose jumped further from the last one than the motion allows
     UNCERTAIN = "uncertain"  # its 1-sigma uncertainty is above the limits
-    OUTLIER = "outlier"  # off the path its neighbours agree on (the smoother)
 
     def __str__(self) -> str:
         return self.value

@@ -23,20 +23,14 @@ What keeps it honest:
   the same place and err alike (far frames smoothed as independent came out up to 3.6
   sigma off together).
 - A pose that does not fit the others (Mahalanobis distance beyond `outlier_chi2`) is
-  dropped from the window. If it is the output frame's own and one path fits 3/4 of the
-  others (at least `min_side` on each side), the frame is `uncertain` (reason
-  `outlier`): a camera that moved so would have moved its neighbours too (near tuning
-  seed 21: a lone detection of a drum 3.5% of the range off, 8 sigma). If other poses
-  misfit too (a manoeuvre the prior does not expect, stills in no order), the frame keeps
-  its tracked values.
+  dropped from the window; if it is the output frame's own, that frame keeps its tracked
+  values (a manoeuvre the prior does not expect, or a wrong pose the tracker's gate let
+  through: the smoother does not decide which).
 - More than `max_gap` frames without a pose split the trajectory: nothing is smoothed
   across a look-away or a lost stretch, and a frame with fewer than `min_side` poses
   before or after it in its stretch (its start and end) stays as tracked: there the
   prior extrapolates, and correlated errors of the first poses after a re-acquisition
-  would swing it (tried: the outlier verdict there refused right poses, 0.2-1.7 sigma
-  off, after a re-acquisition). Inside a stretch it refuses some too, 1-2 sigma off
-  where their neighbours err alike by more (an innovation test, the path's own
-  uncertainty added, refused the same).
+  would swing it.
 The smoothed pose is then gated like a tracked one (the measurement's own limits).
 """
 
@@ -196,16 +190,10 @@ def _step(use, Rm, cm, W, R, c, prior, P):
     return d.reshape(n, 6), factor
 
 
-OUTLIER = Reason.OUTLIER  # smooth_window's verdict: a path fits the others, not this pose
-AGREE = 0.75  # share of the window's other poses that must fit that path
-
-
 def smooth_window(window: list[WorldMeasurement | None], k: int, dt: float, s: SmoothSettings):
-    """MAP pose and 6x6 (theta, c) covariance in W of window[k]; OUTLIER when its pose does
-    not fit a path that fits most others (`AGREE`, at least `s.min_side`); None when it
-    cannot be smoothed (its pose one of many misfits, the window has no other pose).
-    `window` holds one entry per frame (None: no pose) and no gap longer than
-    `s.max_gap`."""
+    """MAP pose and 6x6 (theta, c) covariance in W of window[k], or None when it cannot be
+    smoothed (its pose is an outlier, or the window has no other pose). `window` holds one
+    entry per frame (None: no pose) and no gap longer than `s.max_gap`."""
     idx = [j for j, m in enumerate(window) if m is not None]
     if window[k] is None or len(idx) < 2:
         return None
@@ -235,40 +223,27 @@ def smooth_window(window: list[WorldMeasurement | None], k: int, dt: float, s: S
     q_pos = s.accel_m_s2**2 * dt**3
     prior = np.diag([1 / q_rot] * 3 + [1 / q_pos] * 3)
     P = (_A.T @ prior @ _A).reshape(3, 6, 3, 6)
+    kept = np.ones(len(idx), bool)  # measurements not dropped as outliers
     frames = np.array(idx)
-
-    def fit(kept, steps=GN_STEPS):
-        """The window's MAP path from the kept measurements, the factor of its information
-        and each kept measurement's squared Mahalanobis distance from it."""
-        R, c, use = R0.copy(), c0.copy(), frames[kept]
-        for _it in range(steps):
+    while True:  # drop outliers, the worst first, until every pose fits
+        R, c = R0.copy(), c0.copy()
+        use = frames[kept]
+        for _it in range(GN_STEPS):
             d, factor = _step(use, Rm[kept], cm[kept], info[kept], R, c, prior, P)
             if d is None:
                 return None
             R = rodrigues_many(d[:, :3]) @ R
             c = c + d[:, 3:]
         r = _residuals(Rm[kept], cm[kept], R[use], c[use])
-        return R, c, factor, np.einsum("ni,nij,nj->n", r, info_raw[kept], r)
-
-    kept = np.ones(len(idx), bool)  # measurements not dropped as outliers
-    own = idx.index(k)
-    while True:  # drop outliers, the worst first, until every pose fits
-        # (3 steps once the frame's own pose is out: the start still holds it)
-        got = fit(kept, GN_STEPS if kept[own] else 3)
-        if got is None:
-            return None
-        R, c, factor, m2 = got
+        m2 = np.einsum("ni,nij,nj->n", r, info_raw[kept], r)
         worst = int(np.argmax(m2))
         if m2[worst] <= s.outlier_chi2:
             break
-        if kept.sum() <= 2:
+        if use[worst] == k or len(use) <= 2:
             return None
         kept[np.flatnonzero(kept)[worst]] = False
     if not _fits_prior(R, c, prior, s.max_prior_excess):
         return None
-    if not kept[own]:  # alone among neighbours that agree on a path, or one of many misfits?
-        agree = kept.sum() >= max(s.min_side, AGREE * (len(idx) - 1))
-        return OUTLIER if agree else None
     E = np.zeros((6 * n, 6))
     E[6 * k : 6 * k + 6] = np.eye(6)
     _, pbtrs = lapack_band_solvers()
@@ -353,11 +328,8 @@ class Smoother:
         dt = dt if dt > 0 else 1.0 / s.fps
         # 4 digits: stamps that jitter by microseconds (bags) do not change the poses
         got = smooth_window(window, k - lo, float(f"{dt:.4g}"), s)
-        if got is OUTLIER:  # its neighbours agree on a path it is off: a lone wrong pose
-            rec.status, rec.pose, rec.reason = Status.UNCERTAIN, None, Reason.OUTLIER
-            return rec
-        if got is None:  # nothing to smooth with, or poses that disagree (a manoeuvre
-            return rec  # the prior does not expect, stills in no order): as tracked
+        if got is None:  # nothing to smooth with, or the frame does not fit its
+            return rec  # neighbours (a manoeuvre the prior does not expect): as tracked
         pose, cov = got
         cov = cov + m.shared + s.correlated * m.own
         # with this frame's own evidence in it, the smoothed pose is not worse than the
