@@ -14,9 +14,10 @@ What keeps it honest:
   errors are correlated: the k frames of one anchor in the window count as one
   measurement (each covariance times k). Detections in a row are not independent either:
   they see the same few features of a far landmark from nearly the same place. On the
-  far tuning scenes the mean of a window's detections (about 12) varied 3x as much as
-  independent errors would (whitened errors: correlation 0.3 at one frame, still 0.15 at
-  ten), so every pose counts as at most 1/`min_run` of a measurement.
+  far tuning scenes the mean of a window's detections varied 3x as much as independent
+  errors would (whitened errors of consecutive detections correlate 0.25, still 0.11 ten
+  apart: tools/detection_correlation.py), so every pose counts as at most 1/`min_run` of
+  a measurement.
 - The model's own error is shared by every frame that sees the same points; it is not
   averaged down but added back to the smoothed covariance. So is a share (`correlated`)
   of each frame's own covariance: detections in a row see the same features from nearly
