@@ -38,7 +38,8 @@ class TrackSettings:
     flow_levels: int = 1  # pyramid levels above the image: each point starts where the
     # predicted pose puts it (forward) or at its anchor (backward), so one suffices
     flow_max_dev_sigma: float = 4.0  # flowed pose this many sigmas off the prediction: detect
-    flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect
+    flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect,
+    flow_rmse_growth: float = 1.5  # unless within this many times its detection's RMS
     flow_gain_tol: float = 0.05  # the exposure changed more since the anchor: flow again
     # in the frame scaled to the anchor's brightness (Lucas-Kanade assumes it constant)
     local_keyframes: int = 4  # keyframes near the previous pose to match against

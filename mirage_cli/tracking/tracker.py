@@ -86,6 +86,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self.anchor_gray: np.ndarray | None = None
         self.anchor_px: np.ndarray | None = None  # (N,2) float32, rows of track_px
         self.anchor_n = 0  # points detected in the anchor
+        self.anchor_rmse = 0.0  # their detection's reprojection RMS (px)
         self._anchor_level: np.ndarray | None = None  # their 7x7 means (flow's gain check)
         self._kf_cache: dict[int, tuple] = {}
         self.twins = model.twins()  # the model's tables: stored in its file, or built now
@@ -166,6 +167,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             if res.ok and res.mode != "flow":
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
+                self.anchor_rmse = res.rmse_px
                 self._anchor_level = None
                 self._anchor_no = self._frame_no
         if res.measurement is not None:  # flowed points share their anchor's errors
