@@ -376,7 +376,7 @@ def test_detection_ahead_gives_the_serial_run_poses(sample_model, monkeypatch):
     serial = records(inline)
     with _Late(max_workers=1) as late:
         threaded = records(late)
-    assert {"_box_features", "_probe_features", "_full_features"} <= set(inline.jobs)
+    assert {"_box_features", "_probe_features", "_search_features"} <= set(inline.jobs)
     assert inline.jobs.count("_box_features") >= 10
     # the next regular detection's job waits for the frame after a detection to flow
     # (that frame's deviation check is what mostly asks for another detection): started
@@ -764,6 +764,48 @@ def test_a_sharper_camera_than_the_models_flows_as_often(sample_model):
     detected = sum(r.mode != "flow" for r in recs)
     assert detected <= 25, detected
     assert tracker.px_scale > 1.5 and tracker.settings.max_ok_rmse_px > 3.0
+
+
+def test_a_sharper_cameras_lost_frames_are_searched_at_the_keyframes_scale(
+    sample_model, monkeypatch
+):
+    """The sample's look-away (frames 427-475) through a camera 2x sharper than the model's
+    (1280x960, the frames magnified): a lost frame's whole-frame search only has to find
+    the landmark, so it runs at the keyframes' own scale (640x480 images, a quarter of the
+    pixels), not at the 1.25x finer scale a tracked frame's detection uses (800x600); the
+    landmark is found again as soon as at the model's resolution, and tracked to the
+    truth."""
+    model = LandmarkModel.load(sample_model)
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    cam = model.camera.scaled(1280, 960)
+    src = list(FrameSource([SAMPLE / "orbit.mp4"]).frames(415, 500))
+    detect = schedule.detect
+
+    def run(camera, size):
+        sizes: Counter = Counter()
+
+        def spy(gray, detector, *args):
+            sizes[tracker.lost_run > 0, gray.shape[::-1]] += 1
+            return detect(gray, detector, *args)
+
+        frames = [
+            Frame(f.index, f.id, f.time_s, cv2.resize(f.image, size, interpolation=cv2.INTER_CUBIC))
+            for f in src
+        ]
+        tracker = Tracker(model, camera, TrackSettings())
+        monkeypatch.setattr(schedule, "detect", spy)
+        monkeypatch.setattr(schedule, "_worker", lambda: _Inline())
+        return list(track_frames(iter(frames), tracker)), sizes, tracker
+
+    recs, sizes, tracker = run(cam, cam.size)
+    assert (tracker.full_scale, tracker.search_scale) == (1.6, 2.0)
+    lost = [r.frame for r in recs if not r.ok]
+    assert sizes[True, (640, 480)] >= 8 and sizes[True, (800, 600)] == 0, sizes
+    small, _, _ = run(model.camera, model.camera.size)
+    assert lost == [r.frame for r in small if not r.ok]
+    back = [r for r in recs if r.ok and r.frame > lost[-1]]
+    err = [r.pose.distance_to(row_pose(truth.iloc[r.frame])) for r in back]
+    assert len(back) >= 20 and max(err) < 0.01, (len(back), max(err))
 
 
 def test_the_kernels_load_early_and_a_failure_there_is_not_lost(monkeypatch):

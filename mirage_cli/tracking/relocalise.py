@@ -124,8 +124,7 @@ class Relocalisation:
             return res
         pose = res.pose if res.ok else self._uncertain_pose
         if res.ok and self._search(self.lost_run) == "full":
-            kps, desc = full or self._features("full", self._full_features, gray)
-            self._at_scale(self.full_scale)
+            kps, desc = full or self._whole_frame(gray)
             if desc is not None and len(kps) >= self.settings.min_inliers:
                 rel = self._relocalise(kps, desc)
                 if rel.ok:  # as a lost frame's: the hint was only where to look
@@ -140,7 +139,7 @@ class Relocalisation:
 
     def _probe(self, gray: np.ndarray) -> FrameRecord:
         kps, desc = self._features("probe", self._probe_features, gray)
-        self._at_scale(self.full_scale)  # (a half-size search: it only says whether to go on)
+        self._at_scale(self.search_scale)  # (half size: it only says whether to go on)
         if desc is None or len(kps) < self.settings.min_inliers:
             return FrameRecord(Status.LOST, mode="relocalise", reason=Reason.FEW_FEATURES)
         return self._relocalise(kps, desc)
@@ -240,7 +239,7 @@ class Relocalisation:
             return None
         box = self._model_box(g[0].pose, gray.shape)  # None: most of the frame
         if box is None:
-            scale = self.full_scale
+            scale = self.search_scale if self.lost_run > 0 else self.full_scale
         else:
             kps, desc = self._box_features(gray, box, self.detector)
             scale = max(1.0, box[4])

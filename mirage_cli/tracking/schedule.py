@@ -91,7 +91,7 @@ class DetectionSchedule:
                     self._start(frame_no, "lostbox", self._box_features, gray, box)
             kind = self._search(lost_run)
             if kind is not None and (frame_no, kind) not in self._pending:
-                fn = self._probe_features if kind == "probe" else self._full_features
+                fn = self._probe_features if kind == "probe" else self._search_features
                 self._start(frame_no, kind, fn, gray)
 
     def _drop(self, *kinds: str) -> None:
@@ -131,12 +131,31 @@ class DetectionSchedule:
             return "full"
         return None if long and lost_run % 2 else "probe"
 
+    def _whole_frame(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """This frame's whole-frame features, the pixel limits set to their scale: a lost
+        frame's search (`_search_features`, detected ahead when it was), else a tracked
+        frame whose box would cover most of it (`_full_features`)."""
+        if self.lost_run > 0:
+            self._at_scale(self.search_scale)
+            return self._features("full", self._search_features, gray)
+        self._at_scale(self.full_scale)
+        return self._features("full", self._full_features, gray)
+
     def _probe_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
-        return _scaled_detect(gray, 2 * self.full_scale, detector)
+        return _scaled_detect(gray, 2 * self.search_scale, detector)
+
+    def _search_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
+        """A lost frame's whole frame, at the keyframes' own scale when the video's camera
+        is sharper than the model's (a 1080p video against a 640x480 model: 0.2 of the
+        pixels): enough to find the landmark, and the frames after it are tracked at
+        `full_scale`."""
+        return _scaled_detect(gray, self.search_scale, detector)
 
     def _full_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
-        """The whole frame, at the keyframes' scale when the video's camera is sharper than
-        the model's (a 1080p video against a 640x480 model: a fifth of the pixels)."""
+        """A tracked frame's whole frame (its box would cover most of it), at the scale of
+        the tracking boxes when the video's camera is sharper than the model's (the
+        keyframes' scale with `SHRINK_MARGIN`: a 1080p video against a 640x480 model, 0.31
+        of the pixels)."""
         return _scaled_detect(gray, self.full_scale, detector)
 
     def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:

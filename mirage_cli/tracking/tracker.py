@@ -124,11 +124,11 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
         # a camera sharper than the model's: whole frames are searched at the keyframes'
         # scale (the landmark at the keyframes' distance looks as large as in them)
-        self.full_scale = (
-            round(self._focal_ratio / SHRINK_MARGIN, 2)
-            if self._focal_ratio >= settings.shrink_above
-            else 1.0
-        )
+        sharper = self._focal_ratio >= settings.shrink_above
+        self.full_scale = round(self._focal_ratio / SHRINK_MARGIN, 2) if sharper else 1.0
+        # a lost frame's search only has to find the landmark (the frames after it are
+        # tracked at full_scale): at the keyframes' own scale, 1/1.56 of the pixels
+        self.search_scale = round(self._focal_ratio, 2) if sharper else 1.0
         self.px_scale = 1.0  # the current features' pixel size, in this frame's pixels
         # how high each keyframe looks at the landmark (when to match its squashed views)
         land = P[self.on_landmark] if self.on_landmark.any() else P
@@ -257,8 +257,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             probe = self._probe(gray)
             if probe.status == Status.LOST:
                 return probe
-        kps, desc = self._features("full", self._full_features, gray)
-        self._at_scale(self.full_scale)
+        kps, desc = self._whole_frame(gray)
         if desc is None or len(kps) < self.settings.min_inliers:
             return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_FEATURES)
         if pred is not None and box is None:
