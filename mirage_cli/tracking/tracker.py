@@ -122,8 +122,9 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             [_median_depth(kf.pose, X) for kf, X in zip(kfs, self._kf_points, strict=True)]
         )
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
-        # a camera sharper than the model's: whole frames are searched at the keyframes'
-        # scale (the landmark at the keyframes' distance looks as large as in them)
+        # a camera sharper than the model's: a tracked frame's whole frame is detected at
+        # the keyframes' scale with the boxes' SHRINK_MARGIN (the landmark at the
+        # keyframes' distance looks as large as in them)
         sharper = self._focal_ratio >= settings.shrink_above
         self.full_scale = round(self._focal_ratio / SHRINK_MARGIN, 2) if sharper else 1.0
         # a lost frame's search only has to find the landmark (the frames after it are
