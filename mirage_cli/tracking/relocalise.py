@@ -239,7 +239,7 @@ class Relocalisation:
             return None
         box = self._model_box(g[0].pose, gray.shape)  # None: most of the frame
         if box is None:
-            scale = self.search_scale if self.lost_run > 0 else self.full_scale
+            scale = self._whole_scale()  # the frame's own whole-frame features
         else:
             kps, desc = self._box_features(gray, box, self.detector)
             scale = max(1.0, box[4])

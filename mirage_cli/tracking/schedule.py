@@ -131,15 +131,17 @@ class DetectionSchedule:
             return "full"
         return None if long and lost_run % 2 else "probe"
 
+    def _whole_scale(self) -> float:
+        """The scale this frame's whole frame is detected at: a lost frame's search's, else
+        a tracked frame's whose box would cover most of it."""
+        return self.search_scale if self.lost_run > 0 else self.full_scale
+
     def _whole_frame(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """This frame's whole-frame features, the pixel limits set to their scale: a lost
-        frame's search (`_search_features`, detected ahead when it was), else a tracked
-        frame whose box would cover most of it (`_full_features`)."""
-        if self.lost_run > 0:
-            self._at_scale(self.search_scale)
-            return self._features("full", self._search_features, gray)
-        self._at_scale(self.full_scale)
-        return self._features("full", self._full_features, gray)
+        """This frame's whole-frame features (`_search_features` while lost, detected ahead
+        when they were, else `_full_features`), the pixel limits set to their scale."""
+        self._at_scale(self._whole_scale())
+        fn = self._search_features if self.lost_run > 0 else self._full_features
+        return self._features("full", fn, gray)
 
     def _probe_features(self, gray: np.ndarray, detector) -> tuple[np.ndarray, np.ndarray]:
         return _scaled_detect(gray, 2 * self.search_scale, detector)
