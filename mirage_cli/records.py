@@ -49,6 +49,25 @@ class Reason(str, Enum):
     __format__ = str.__format__
 
 
+class Cause(str, Enum):
+    """Why a frame was detected (or relocalised) rather than flowed: what makes footage
+    slow (`mirage track -v` counts them)."""
+
+    SCHEDULED = "scheduled"  # the regular detection (every `redetect_every` + 1 frames)
+    FLOW_FAILED = "flow_failed"  # Lucas-Kanade could not run (no points left in reach)
+    FLOW_WEAK = "flow_weak"  # too few of the detection's points followed well
+    FLOW_DRIFT = "flow_drift"  # the flowed points fit the pose worse than the detection
+    FLOW_DEVIATION = "flow_deviation"  # the flowed pose is far from the predicted one
+    FLOW_REFUSED = "flow_refused"  # the flowed pose did not pass the gate
+    LOST = "lost"  # no pose to flow from (lost, or the first frame)
+    NO_FLOW = "no_flow"  # flow is off (--no-flow)
+
+    def __str__(self) -> str:
+        return self.value
+
+    __format__ = str.__format__
+
+
 @dataclass
 class Measurement:
     """What the tracker measured in a frame with a pose (ok or uncertain), for the smoother:
@@ -83,6 +102,7 @@ class FrameRecord:
     ms: float = float("nan")  # processing time of the frame
     mode: str = ""  # detect | flow | relocalise
     reason: str = ""  # why not ok (a Reason); empty when ok
+    cause: str = ""  # detect / relocalise: why the frame was not flowed (a Cause; -v)
     inlier_px: np.ndarray | None = field(default=None, repr=False)  # for overlays
     image: np.ndarray | None = field(default=None, repr=False)  # the frame, when kept
     extra: dict = field(default_factory=dict)  # other columns by name (landmark_visible)

@@ -1379,6 +1379,12 @@ def test_verbose_prints_stages_frames_and_refusals(world, capsys, monkeypatch):
     assert "stage load the compiled solver:" in err and "stage tracking:" in err
     assert re.search(r"^frame 425: \w+", err, re.M), err
     assert re.search(r"^refused \d+ frame\(s\) as lost", err, re.M), err
+    # why frames were detected rather than flowed: per frame (-vv), and counted (-v)
+    detected = re.findall(r"^frame \d+: \w+ \((?:detect|relocalise): (\w+)\)", err, re.M)
+    why = re.search(r"^detected rather than flowed, why: (.+)$", err, re.M)
+    assert detected and why, err
+    counted = dict((c, int(n)) for c, n in (part.split() for part in why[1].split(", ")))
+    assert counted == {c: detected.count(c) for c in set(detected)}
 
 
 def test_an_interrupt_in_a_callback_is_not_printed_but_raised_later(capsys):

@@ -16,7 +16,7 @@ from mirage_cli.camera import Camera
 from mirage_cli.frames import Frame, FrameSource
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pipelines.track import tracked_records
-from mirage_cli.records import FrameRecord, Reason, Status
+from mirage_cli.records import Cause, FrameRecord, Reason, Status
 from mirage_cli.synth import LANDMARK_TARGET
 from mirage_cli.tracking import Tracker, TrackSettings, schedule, track_frames
 from mirage_cli.tracking.gating import frame_covariances
@@ -356,6 +356,33 @@ class _Late(ThreadPoolExecutor):
             return fn(*args)
 
         return super().submit(late)
+
+
+def test_each_detection_says_why_the_frame_was_not_flowed(sample_model):
+    """A detected (or relocalised) frame's `cause` says why it was not flowed (what makes
+    footage slow, `mirage track -v`): the regular detection after `redetect_every` flowed
+    frames, a flow that gave no pose, or no pose to flow from. Frames 380-520 of the orbit:
+    tracking, the look-away and the re-acquisition."""
+    model = LandmarkModel.load(sample_model)
+    frames = FrameSource([SAMPLE / "orbit.mp4"]).frames(380, 520)
+    settings = TrackSettings()
+    recs = list(track_frames(frames, Tracker(model, model.camera, settings)))
+    modes = [r.mode for r in recs]
+    causes = [str(r.cause) for r in recs]
+    assert all(c == "" for m, c in zip(modes, causes, strict=True) if m == "flow")
+    detected = [i for i, m in enumerate(modes) if m in ("detect", "relocalise")]
+    assert all(causes[i] in {str(c) for c in Cause} for i in detected)
+    n = settings.redetect_every
+    scheduled = [i for i in detected if causes[i] == "scheduled"]
+    assert len(scheduled) >= 5
+    for i in scheduled:  # after exactly `redetect_every` flowed frames
+        assert i >= n and modes[i - n : i] == ["flow"] * n, (i, modes[i - n - 1 : i + 1])
+    for i in detected:
+        if causes[i].startswith("flow_"):  # a flow was tried: the frame before had a pose
+            assert recs[i - 1].ok, i
+        if recs[i - 1].status == Status.LOST:  # nothing to flow from
+            assert causes[i] == "lost", (i, causes[i])
+    assert causes.count("lost") >= 20  # the look-away's searches
 
 
 def test_detection_ahead_gives_the_serial_run_poses(sample_model, monkeypatch):

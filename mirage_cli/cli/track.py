@@ -188,6 +188,11 @@ def refusal_lines(records) -> list[str]:
     modes = Counter(r[5] for r in records if r[5])
     if modes:
         out.append("modes: " + ", ".join(f"{m} {n}" for m, n in modes.most_common()))
+    # what makes footage slow: why frames were detected rather than flowed
+    causes = Counter(r[6] for r in records if r[5] in ("detect", "relocalise") and r[6])
+    if causes:
+        shown = ", ".join(f"{c} {n}" for c, n in causes.most_common())
+        out.append(f"detected rather than flowed, why: {shown}")
     return out
 
 

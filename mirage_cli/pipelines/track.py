@@ -253,7 +253,7 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
                     done.append((rec.status, rec.inliers))
                     if verbose:
                         decided.append((rec.frame, str(rec.status), rec.keyframe, rec.inliers,
-                                        rec.matches, rec.mode))  # fmt: skip
+                                        rec.matches, rec.mode, str(rec.cause)))  # fmt: skip
                         reporter.detail(frame_line(rec), 2)
                 if len(done) % 10 == 0:
                     rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
@@ -294,6 +294,8 @@ def nothing_found(result: TrackResult) -> None:
 def frame_line(rec) -> str:
     """-vv: one line per frame, what was decided and from what."""
     why = f" ({rec.mode})" if getattr(rec, "mode", None) else ""
+    if getattr(rec, "cause", ""):  # why it was detected rather than flowed
+        why = f" ({rec.mode}: {rec.cause})"
     kf = f", keyframe {rec.keyframe}" if getattr(rec, "keyframe", None) else ""
     return (
         f"frame {rec.frame}: {rec.status}{why}{kf}, {rec.inliers or 0} inliers of "

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from ..pose import Pose
-from ..records import FrameRecord, Reason
+from ..records import Cause, FrameRecord, Reason
 from ..solver import sigmas, solve_pose
 
 
@@ -54,6 +54,7 @@ class FlowTracking:
         guess = self.track_px
         if self.velocity is not None and np.all(pred.transform(self.track_X)[:, 2] > 1e-3):
             guess = self.camera.project(self.track_X, pred).astype(np.float32)
+        self.flow_refusal = Cause.FLOW_FAILED
         tracked = self._lucas_kanade(gray, a0, guess, lk)
         if tracked is None:
             return None
@@ -72,6 +73,7 @@ class FlowTracking:
         # (`flow_keep_few`), not more than it had
         n, s = self.anchor_n, self.settings
         if good.sum() < max(min(s.min_flow_points, s.flow_keep_few * n), s.flow_keep * n):
+            self.flow_refusal = Cause.FLOW_WEAK
             return None
         X, uv = self.track_X[good], p1[good]
         est = solve_pose(
@@ -88,13 +90,16 @@ class FlowTracking:
         # worse than the anchor's own: from 50 deg above, detections fit at 0.8-0.9 px
         # (foreshortened keypoints and model points) and their flows at 1.0-1.2 px
         limit = max(s.flow_max_rmse_px, s.flow_rmse_growth * self.anchor_rmse)
+        self.flow_refusal = Cause.FLOW_REFUSED  # unless the checks below say more
         if res.ok and est.rmse_px > limit:
+            self.flow_refusal = Cause.FLOW_DRIFT
             return None
         if res.ok and self.velocity is not None:
             # points that slid along an edge bend the pose while the residuals stay small;
             # a smooth path predicts the pose well, so a flowed pose far from the
             # prediction (in the sigmas of its residuals) is checked by a detection
             if _deviation(res, pred) > self.settings.flow_max_dev_sigma:
+                self.flow_refusal = Cause.FLOW_DEVIATION
                 return None
         if res.ok:
             self.since_detect += 1

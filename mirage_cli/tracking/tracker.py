@@ -30,7 +30,7 @@ from ..features import guided_match, make_detector, to_gray
 from ..frames import Frame
 from ..model import LandmarkModel, periodic_floor
 from ..pose import Pose
-from ..records import FrameRecord, Reason, Status
+from ..records import Cause, FrameRecord, Reason, Status
 from ..signals import through_compiled_code
 from ..solver import PoseEstimate
 from ..solver import warm_up as _warm_up_solver
@@ -87,6 +87,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self.anchor_px: np.ndarray | None = None  # (N,2) float32, rows of track_px
         self.anchor_n = 0  # points detected in the anchor
         self.anchor_rmse = 0.0  # their detection's reprojection RMS (px)
+        self.flow_refusal = Cause.FLOW_FAILED  # why the last flow gave no pose (records' cause)
         self._anchor_level: np.ndarray | None = None  # their 7x7 means (flow's gain check)
         self._kf_cache: dict[int, tuple] = {}
         self.twins = model.twins()  # the model's tables: stored in its file, or built now
@@ -161,10 +162,14 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             self._search_ahead(ahead)  # lost (the first frame is expected to find it)
         can_flow = self.settings.flow and self.prev_pose is not None and self.track_px is not None
         due = can_flow and self.since_detect >= self.settings.redetect_every
+        cause = Cause.SCHEDULED if due else Cause.LOST if self.settings.flow else Cause.NO_FLOW
         if can_flow and not due:
             res = self._flow(gray)
+            cause = self.flow_refusal
         if res is None or not res.ok:
             res = self._detect(gray) if not due else self._regular_detection(gray)
+            if res.mode != "flow":  # (a regular detection may keep the flow)
+                res.cause = cause
             if res.ok and res.mode != "flow":
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
