@@ -59,13 +59,14 @@ class GuidedSearch:
             )
         return int(x0), int(y0), int(x1), int(y1), shrink
 
-    def _guided(self, kps, desc, pred: Pose) -> FrameRecord:
+    def _guided(self, kps, desc, pred: Pose, radius: float | None = None) -> FrameRecord:
         """Tracking: match near the predicted projections of the nearby keyframes' points.
         When under half of the matches agree (the prediction was off: stills taken apart,
         a sudden turn), the matches near the prediction miss many of the frame's points
         and hold wrong ones: match again around the pose just found (and its nearest
         keyframes) within a quarter of the radius, and solve again from it."""
-        radius = self.settings.guided_radius_px * (1 + min(self.lost_run, 3))
+        if radius is None:  # the prediction's reach: wider the longer it is out of date
+            radius = self.settings.guided_radius_px * (1 + min(self.lost_run, 3))
         first = self._guided_solve(kps, desc, pred, radius)
         if first is None:
             return FrameRecord(Status.LOST, mode="detect", reason=Reason.FEW_MATCHES)
