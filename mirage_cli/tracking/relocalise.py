@@ -278,16 +278,10 @@ class Relocalisation:
 
     def _polished(self, kps, desc, res: FrameRecord) -> FrameRecord | None:
         """A relocalised pose measured again as a tracked frame is (ORB-SLAM's search by
-        projection after a relocalisation): guided matching around it, on the nearby
-        keyframes. Descriptor matching over the recognised keyframes keeps fewer and
-        coarser matches (the ratio test across keyframes, twins included in the fit): the
-        weak-texture orbit's first frame was relocalised 26 mm (2.8 sigma) off with 56
-        inliers, and the velocity from it set off 5 detections in the next 22 frames;
-        guided, 62 inliers and 6 mm. Kept when ok, as close as `distinct` allows and
-        with at least the relocalisation's inliers; else None."""
+        projection), at the tracking radius: the weak-texture orbit's first frame was
+        relocalised 26 mm (2.8 sigma) off with 56 inliers; guided, 62 and 6 mm. Kept
+        when ok, not `distinct` and with at least the relocalisation's inliers."""
         held = self._uncertain_pose
-        # (a measured pose, not a prediction out of date: the tracking radius, however
-        # long the frame was lost)
         g = self._guided(kps, desc, res.pose, self.settings.guided_radius_px)
         self._uncertain_pose = held
         if not g.ok or g.inliers < res.inliers or self.settings.distinct(g.pose, res.pose):
