@@ -72,7 +72,17 @@ class FlowTracking:
         # from above: 20-29 inliers) was trusted with them, so its flow needs most of them
         # (`flow_keep_few`), not more than it had
         n, s = self.anchor_n, self.settings
-        if good.sum() < max(min(s.min_flow_points, s.flow_keep_few * n), s.flow_keep * n):
+        need = max(min(s.min_flow_points, s.flow_keep_few * n), s.flow_keep * n)
+        # a turn the prediction missed (the camera started or stopped turning: 18-58 px at
+        # the 1080p orbit's look-away, where the window reaches ~15) moves every point
+        # alike: measured, the points flow from where it puts them
+        shifted = False
+        if good.sum() < need and s.flow_shift_retry:
+            start = self._shifted_guess(gray, a0, guess)
+            again = self._lucas_kanade(gray, a0, start, lk) if start is not None else None
+            if again is not None and again[1].sum() >= need:
+                (p1, good), shifted = again, True
+        if good.sum() < need:
             self.flow_refusal = Cause.FLOW_WEAK
             return None
         X, uv = self.track_X[good], p1[good]
@@ -94,10 +104,13 @@ class FlowTracking:
         if res.ok and est.rmse_px > limit:
             self.flow_refusal = Cause.FLOW_DRIFT
             return None
-        if res.ok and self.velocity is not None:
+        if res.ok and self.velocity is not None and not shifted:
             # points that slid along an edge bend the pose while the residuals stay small;
             # a smooth path predicts the pose well, so a flowed pose far from the
-            # prediction (in the sigmas of its residuals) is checked by a detection
+            # prediction (in the sigmas of its residuals) is checked by a detection. Not
+            # after a measured shift: the images showed the prediction wrong (1080p
+            # look-away: such flows 0.2-1.8 mm off, 5-12 sigma from a prediction 5-10 mm
+            # off)
             if _deviation(res, pred) > self.settings.flow_max_dev_sigma:
                 self.flow_refusal = Cause.FLOW_DEVIATION
                 return None
@@ -150,15 +163,10 @@ class FlowTracking:
         it: a 4K frame against a 640x480 model (shrunk ~3.6x) flows on a half-size cut, as
         precise as the features it follows; the 1080p orbit's boxes (~1.8x) flow at full
         size."""
-        levels = int(np.floor(np.log2(max(self.px_scale, 1.0)) + 1e-9))
-        f = 2**levels
-        cut = _flow_region(gray.shape, (self.anchor_px, guess), lk, f)
+        cut = self._flow_images(gray, (self.anchor_px, guess), lk)
         if cut is None:
             return None
-        (x0, y0, x1, y1), off = cut, np.float32(cut[:2])
-        A, B = self.anchor_gray[y0:y1, x0:x1], gray[y0:y1, x0:x1]
-        for _ in range(levels):
-            A, B = cv2.pyrDown(A), cv2.pyrDown(B)
+        A, B, off, f = cut
         a = (a0 - off) / np.float32(f)
         try:  # from the anchor image: the error does not add up from frame to frame
             p1, st, _ = cv2.calcOpticalFlowPyrLK(
@@ -176,6 +184,45 @@ class FlowTracking:
             & (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
         )  # fmt: skip
         return p1, good
+
+    def _flow_images(self, gray, points, lk) -> tuple | None:
+        """(anchor, frame, offset, f): both images cut to `points` with the flow's reach
+        (`_flow_region`) and shrunk by f (a power of 2) to the features' scale."""
+        levels = int(np.floor(np.log2(max(self.px_scale, 1.0)) + 1e-9))
+        f = 2**levels
+        cut = _flow_region(gray.shape, points, lk, f)
+        if cut is None:
+            return None
+        (x0, y0, x1, y1), off = cut, np.float32(cut[:2])
+        A, B = self.anchor_gray[y0:y1, x0:x1], gray[y0:y1, x0:x1]
+        for _ in range(levels):
+            A, B = cv2.pyrDown(A), cv2.pyrDown(B)
+        return A, B, off, f
+
+    def _shifted_guess(self, gray, a0, guess) -> np.ndarray | None:
+        """The guess moved by the image shift most points agree on (within 2 px of their
+        median), measured by a coarse Lucas-Kanade (3 levels more, a 15 px window: a
+        reach of ~100 px): the prediction's error is a shift, not a warp, within a turn."""
+        lk = dict(winSize=(15, 15), maxLevel=3,
+                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.03),
+                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)  # fmt: skip
+        cut = self._flow_images(gray, (self.anchor_px, guess), lk)
+        if cut is None:
+            return None
+        A, B, off, f = cut
+        a, g = (a0 - off) / np.float32(f), ((guess - off) / np.float32(f)).reshape(-1, 1, 2)
+        try:
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, a, g, **lk)
+        except cv2.error:
+            return None
+        d = (p1.reshape(-1, 2) * np.float32(f) + off - guess)[st.ravel() == 1]
+        if len(d) < 10:
+            return None
+        m = np.median(d, axis=0)
+        agree = np.linalg.norm(d - m, axis=1) < 2.0 * self.px_scale
+        if agree.sum() < max(10, 0.3 * len(guess)):
+            return None
+        return (guess + m).astype(np.float32)
 
     def _gain(self, gray: np.ndarray, p1: np.ndarray, good: np.ndarray) -> float:
         """The anchor's brightness over this frame's at the well-flowed points: the median

@@ -37,6 +37,8 @@ class TrackSettings:
     flow_window_px: int = 7  # Lucas-Kanade window: small, so it stays on one surface
     flow_levels: int = 1  # pyramid levels above the image: each point starts where the
     # predicted pose puts it (forward) or at its anchor (backward), so one suffices
+    flow_shift_retry: bool = True  # too few points flowed: measure the image shift they
+    # agree on (a coarse pass) and flow again from it, before detecting afresh
     flow_max_dev_sigma: float = 4.0  # flowed pose this many sigmas off the prediction: detect
     flow_max_rmse_px: float = 1.0  # a worse flowed fit (large motion, drift) -> detect,
     flow_rmse_growth: float = 1.5  # unless within this many times its detection's RMS

@@ -239,6 +239,8 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         pred = self._predicted()
         box = self._model_box(pred, gray.shape) if pred is not None else None
         early = self._pending.pop((self._frame_no, "box"), None) if pred is not None else None
+        if early is not None and box is not None and not _covers(early.box, box):
+            early = None  # detected where the model was predicted to be, not where it is
         if early is None and box is not None:  # searched ahead in this box, while lost?
             early = self._pending.pop((self._frame_no, "lostbox"), None)
             early = early if early is not None and early.box == box else None
@@ -281,6 +283,16 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             self.track_land = land[est.inliers]
             res.inlier_px = self.track_px
         return res
+
+
+def _covers(outer, inner, share: float = 0.9) -> bool:
+    """Whether the pixel box `outer` (None: the whole frame) holds `share` of `inner`."""
+    if outer is None:
+        return True
+    w = min(outer[2], inner[2]) - max(outer[0], inner[0])
+    h = min(outer[3], inner[3]) - max(outer[1], inner[1])
+    area = (inner[2] - inner[0]) * (inner[3] - inner[1])
+    return w > 0 and h > 0 and w * h >= share * area
 
 
 def _to_world(rec: FrameRecord, level: np.ndarray) -> None:
