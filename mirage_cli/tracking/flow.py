@@ -73,13 +73,9 @@ class FlowTracking:
         # (`flow_keep_few`), not more than it had
         n, s = self.anchor_n, self.settings
         need = max(min(s.min_flow_points, s.flow_keep_few * n), s.flow_keep * n)
-        # a turn the prediction missed (the camera started or stopped turning: 18-58 px at
-        # the 1080p orbit's look-away, where the window reaches ~15) moves every point
-        # alike: measured, the points flow from where it puts them
-        shifted = False
+        shifted = False  # (a turn the prediction missed: `_shifted_flow`)
         if good.sum() < need and s.flow_shift_retry:
-            start = self._shifted_guess(gray, a0, guess)
-            again = self._lucas_kanade(gray, a0, start, lk) if start is not None else None
+            again = self._shifted_flow(gray, a0, guess, lk)
             if again is not None and again[1].sum() >= need:
                 (p1, good), shifted = again, True
         if good.sum() < need:
@@ -199,20 +195,23 @@ class FlowTracking:
             A, B = cv2.pyrDown(A), cv2.pyrDown(B)
         return A, B, off, f
 
-    def _shifted_guess(self, gray, a0, guess) -> np.ndarray | None:
-        """The guess moved by the image shift most points agree on (within 2 px of their
-        median), measured by a coarse Lucas-Kanade (3 levels more, a 15 px window: a
-        reach of ~100 px): the prediction's error is a shift, not a warp, within a turn."""
-        lk = dict(winSize=(15, 15), maxLevel=3,
-                  criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.03),
-                  flags=cv2.OPTFLOW_USE_INITIAL_FLOW)  # fmt: skip
-        cut = self._flow_images(gray, (self.anchor_px, guess), lk)
+    def _shifted_flow(self, gray, a0, guess, lk) -> tuple[np.ndarray, np.ndarray] | None:
+        """`_lucas_kanade` from the guess moved by the image shift most points agree on
+        (within 2 px of their median), measured by a coarse pass (3 levels more, a 15 px
+        window: a reach of ~100 px). When the camera starts or stops turning the
+        constant-velocity prediction misses by a shift, not a warp (the 1080p orbit's
+        look-away: 18-58 px, the same within 1 px over the points, where the flow's
+        window reaches ~15)."""
+        coarse = dict(winSize=(15, 15), maxLevel=3,
+                      criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.03),
+                      flags=cv2.OPTFLOW_USE_INITIAL_FLOW)  # fmt: skip
+        cut = self._flow_images(gray, (self.anchor_px, guess), coarse)
         if cut is None:
             return None
         A, B, off, f = cut
         a, g = (a0 - off) / np.float32(f), ((guess - off) / np.float32(f)).reshape(-1, 1, 2)
         try:
-            p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, a, g, **lk)
+            p1, st, _ = cv2.calcOpticalFlowPyrLK(A, B, a, g, **coarse)
         except cv2.error:
             return None
         d = (p1.reshape(-1, 2) * np.float32(f) + off - guess)[st.ravel() == 1]
@@ -222,7 +221,7 @@ class FlowTracking:
         agree = np.linalg.norm(d - m, axis=1) < 2.0 * self.px_scale
         if agree.sum() < max(10, 0.3 * len(guess)):
             return None
-        return (guess + m).astype(np.float32)
+        return self._lucas_kanade(gray, a0, (guess + m).astype(np.float32), lk)
 
     def _gain(self, gray: np.ndarray, p1: np.ndarray, good: np.ndarray) -> float:
         """The anchor's brightness over this frame's at the well-flowed points: the median
