@@ -74,7 +74,7 @@ class FlowTracking:
         n, s = self.anchor_n, self.settings
         need = max(min(s.min_flow_points, s.flow_keep_few * n), s.flow_keep * n)
         shifted = False  # (a turn the prediction missed: `_shifted_flow`)
-        if good.sum() < need and s.flow_shift_retry:
+        if good.sum() < need and s.flow_shift_retry and not self.upsampled:
             again = self._shifted_flow(gray, a0, guess, lk)
             if again is not None and again[1].sum() >= need:
                 (p1, good), shifted = again, True
@@ -129,12 +129,12 @@ class FlowTracking:
         does contradict it: the flow may follow a look-alike side (tuning seed above 7:
         146 wrong poses when the flow was kept through its ambiguous detections), so the
         frame is the detection's. The next regular detection tries again."""
-        scale = self.px_scale
+        scale = self.px_scale, self.upsampled
         res = self._detect(gray)
         found = self._uncertain_pose  # the detection's own pose, if it was uncertain
         if res.ok or res.reason == Reason.AMBIGUOUS:
             return res
-        self._at_scale(scale)  # the flowed points keep their detection's pixel limits
+        self._at_scale(*scale)  # the flowed points keep their detection's pixel limits
         flowed = self._flow(gray)
         self._uncertain_pose = found
         if (
@@ -201,7 +201,9 @@ class FlowTracking:
         window: a reach of ~100 px). When the camera starts or stops turning the
         constant-velocity prediction misses by a shift, not a warp (the 1080p orbit's
         look-away: 18-58 px, the same within 1 px over the points, where the flow's
-        window reaches ~15)."""
+        window reaches ~15). Not for features of an upsampled box (a far landmark): their
+        flows are coarser than their detections (stress scene far 4 m + tiles: flows 80-100
+        mm off where the detections were 12-13)."""
         coarse = dict(winSize=(15, 15), maxLevel=3,
                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.03),
                       flags=cv2.OPTFLOW_USE_INITIAL_FLOW)  # fmt: skip
@@ -221,6 +223,8 @@ class FlowTracking:
         agree = np.linalg.norm(d - m, axis=1) < 2.0 * self.px_scale
         if agree.sum() < max(10, 0.3 * len(guess)):
             return None
+        if np.linalg.norm(m) < self.settings.flow_window_px * self.px_scale:
+            return None  # within the flow's own reach: the shift is not what lost the points
         return self._lucas_kanade(gray, a0, (guess + m).astype(np.float32), lk)
 
     def _gain(self, gray: np.ndarray, p1: np.ndarray, good: np.ndarray) -> float:
