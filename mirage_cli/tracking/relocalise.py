@@ -223,7 +223,7 @@ class Relocalisation:
             ):
                 return FrameRecord(Status.AMBIGUOUS, mode="relocalise", reason=Reason.AMBIGUOUS)
         res, est, uv, X, kf, land, scale = best
-        self._at_scale(*scale)  # the flow from here keeps the scale its points were found at
+        self._at_scale(scale)  # the flow from here keeps the scale its points were found at
         self._uncertain_pose = est.pose if res.status == Status.UNCERTAIN else None
         return self._accept(res, est, uv, X, kf, land)
 
@@ -239,11 +239,11 @@ class Relocalisation:
             return None
         box = self._model_box(g[0].pose, gray.shape)  # None: most of the frame
         if box is None:
-            scale = (self._whole_scale(), False)  # the frame's own whole-frame features
+            scale = self._whole_scale()  # the frame's own whole-frame features
         else:
             kps, desc = self._box_features(gray, box, self.detector)
-            scale = (max(1.0, box[4]), self._upsamples(box))
-        self._at_scale(*scale)
+            scale = max(1.0, box[4])
+        self._at_scale(scale)
         g = self._guided_solve(kps, desc, g[0].pose, r)
         if g is None or not g[0].success:
             return None

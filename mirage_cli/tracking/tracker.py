@@ -132,7 +132,6 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         # tracked at full_scale): at the keyframes' own scale, 1/1.56 of the pixels
         self.search_scale = round(self._focal_ratio, 2) if sharper else 1.0
         self.px_scale = 1.0  # the current features' pixel size, in this frame's pixels
-        self.upsampled = False  # and whether they were detected on an upsampled box
         # how high each keyframe looks at the landmark (when to match its squashed views)
         land = P[self.on_landmark] if self.on_landmark.any() else P
         self._target = land.mean(axis=0) if len(land) else np.zeros(3)
@@ -217,11 +216,9 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         )  # fmt: skip
         return res
 
-    def _at_scale(self, f: float, upsampled: bool = False) -> None:
-        """Features detected on an image shrunk by `f` (or on an `upsampled` box): the
-        pixel limits follow (until the next detection: flowed points keep their
-        detection's)."""
-        self.upsampled = upsampled
+    def _at_scale(self, f: float) -> None:
+        """Features detected on an image shrunk by `f`: the pixel limits follow (until the
+        next detection: flowed points keep their detection's)."""
         if f != self.px_scale:
             self.px_scale, self.settings = f, self.base_settings.at_scale(f)
 
@@ -253,7 +250,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
                 kps, desc = early.result()
             else:
                 kps, desc = self._box_features(gray, box, self.detector)
-            self._at_scale(max(1.0, used[4]) if used else self.full_scale, self._upsamples(used))
+            self._at_scale(max(1.0, used[4]) if used else self.full_scale)
             if len(kps) >= self.settings.min_track_inliers:
                 res = self._confirm(self._guided(kps, desc, pred), gray)
                 # an uncertain pose found the landmark where predicted and says its view
