@@ -105,8 +105,8 @@ class FlowTracking:
             # a smooth path predicts the pose well, so a flowed pose far from the
             # prediction (in the sigmas of its residuals) is checked by a detection. Not
             # after a measured shift: the images showed the prediction wrong (1080p
-            # look-away: such flows 0.2-1.8 mm off, 5-12 sigma from a prediction 5-10 mm
-            # off)
+            # look-away: such flows 0.2-1.8 mm off, 4.4-12.4 sigma from a prediction
+            # 4.7-10.1 mm off)
             if _deviation(res, pred) > self.settings.flow_max_dev_sigma:
                 self.flow_refusal = Cause.FLOW_DEVIATION
                 return None
@@ -198,14 +198,14 @@ class FlowTracking:
     def _shifted_flow(self, gray, a0, guess, lk) -> tuple[np.ndarray, np.ndarray] | None:
         """`_lucas_kanade` from the guess moved by the image shift most points agree on
         (within 2 px of their median), measured by a coarse pass (3 levels more, a 15 px
-        window: a reach of ~100 px). When the camera starts or stops turning the
-        constant-velocity prediction misses by a shift, not a warp (the 1080p orbit's
-        look-away: 18-58 px, the same within 1 px over the points, where the flow's
-        window reaches ~15). Only for a video sharper than the features (`px_scale` > 1):
+        window). When the camera starts or stops turning the constant-velocity prediction
+        misses by a shift, not a warp (the 1080p orbit's look-away: 18-58 px, the same
+        within 1 px over the points, where the flow's window reaches ~15; measured within
+        0.3 px of the truth's). Only for a video sharper than the features (`px_scale` > 1):
         there the flow follows the points more finely than they were detected, and the
         shifted flows are more precise than detections (1080p p95 2.65 -> 2.38 mm); at the
         features' own scale they were coarser (stress scenes, median: floor tiles 1.3 ->
-        1.8 mm, far 2.5 m 4.8 -> 5.4; far 4 m + tiles: flows 80-100 mm off where the
+        1.8 mm, far 2.5 m 4.8 -> 5.2; far 4 m + tiles: flows 80-100 mm off where the
         detections were 12-13)."""
         coarse = dict(winSize=(15, 15), maxLevel=3,
                       criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.03),
