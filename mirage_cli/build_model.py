@@ -32,7 +32,14 @@ from .camera import Camera
 from .errors import InputError
 from .features import DetectorSettings, detect, make_detector, make_matcher, ratio_match
 from .frames import FrameSource, read_image, resolve_inputs
-from .model import REACH_DEG, Keyframe, LandmarkModel, largest_azimuth_gap, make_thumbnail
+from .model import (
+    REACH_DEG,
+    Keyframe,
+    LandmarkModel,
+    encode_image,
+    largest_azimuth_gap,
+    make_thumbnail,
+)
 from .pose import Pose
 from .tilt import tilted_features
 from .trajectory import poses_by_frame, read_pose_csv
@@ -121,6 +128,7 @@ class BuildSettings:
     up: str = "auto"  # W's up axis: auto (from the views) | +z | -z | +y | -y | +x | -x
     max_video_frames: int = 400  # frames examined in a video (evenly spaced)
     tilted_views: bool = True  # also each keyframe as from 45 and 60 deg higher (tilt.py)
+    keyframe_images: bool = True  # store the images: far frames place points by patches
 
 
 UP_AXES = ("auto", "+z", "-z", "+y", "-y", "+x", "-x")
@@ -627,6 +635,9 @@ def build_model(
         Keyframe(v.name, v.pose, kps[i], descs[i], point_ids[i], make_thumbnail(v.image))
         for i, v in enumerate(views)
     ]
+    if settings.keyframe_images:
+        for kf, v in zip(keyframes, views, strict=True):
+            kf.image, kf.image_scale = encode_image(v.image)
     if settings.tilted_views:
 
         def tilted(k):

@@ -29,6 +29,7 @@ from .pose import Pose
 FORMAT = "mirage-landmark-model"
 FORMAT_VERSION = 1
 THUMB_WIDTH = 160
+MAX_IMAGE_PX = 2048  # keyframe images stored for patches: longer side at most (halved)
 
 
 @dataclass
@@ -47,6 +48,16 @@ class Keyframe:
     # the detector's descriptor dtype when `descriptors` was given in the file's form
     # (SIFT's as bytes, memory-mapped): cast on first use, so a load reads none of them
     dtype: object = field(default=None, repr=False, compare=False)
+    # the grey image as PNG bytes (uint8), for placing points by their patches
+    # (patches.py); `image_scale`: its pixels per keyframe pixel (large images halved)
+    image: np.ndarray | None = field(default=None, repr=False, compare=False)
+    image_scale: float = 1.0
+
+    def gray_image(self) -> np.ndarray | None:
+        """The stored grey image (decoded on each call; None when the model has none)."""
+        if self.image is None:
+            return None
+        return cv2.imdecode(np.asarray(self.image, np.uint8), cv2.IMREAD_GRAYSCALE)
 
     def linked(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keypoints, descriptors, point_ids) of the features that have a 3D point."""
@@ -86,6 +97,16 @@ def _descriptors_set(kf: Keyframe, value: np.ndarray) -> None:
 Keyframe.descriptors = property(_descriptors_get, _descriptors_set)  # after the dataclass
 
 
+def encode_image(gray: np.ndarray, max_px: int = MAX_IMAGE_PX) -> tuple[np.ndarray, float]:
+    """A keyframe's grey image as lossless PNG bytes, halved (pyrDown: its pixel `x` at
+    `x / 2`) until its longer side is at most `max_px`; and that scale."""
+    scale = 1.0
+    while max(gray.shape[:2]) > max_px:
+        gray, scale = cv2.pyrDown(gray), scale / 2
+    ok, buf = cv2.imencode(".png", gray, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    return buf.ravel().astype(np.uint8), scale
+
+
 def make_thumbnail(gray: np.ndarray, width: int = THUMB_WIDTH) -> np.ndarray:
     h = max(1, round(gray.shape[0] * width / gray.shape[1]))
     return cv2.resize(gray, (width, h), interpolation=cv2.INTER_AREA)
@@ -95,6 +116,10 @@ class KeyframeRecognition:
     """Which keyframes see a frame: by its descriptors (global recognition) or by its pose
     (a part of `LandmarkModel`: it reads `keyframes`, `points` and `detector` and keeps the
     indexes in `_index` and `_tilted_index`)."""
+
+    @property
+    def has_images(self) -> bool:
+        return bool(self.keyframes) and all(kf.image is not None for kf in self.keyframes)
 
     @property
     def has_tilted(self) -> bool:
@@ -363,6 +388,7 @@ class LandmarkModel(KeyframeRecognition):
             "obs_keyframe": np.asarray(obs.get("keyframe", []), np.int32),
             "obs_feature": np.asarray(obs.get("feature", []), np.int32),
             **self._tilted_arrays(dim),
+            **_image_arrays(self.keyframes),
             **self._table_arrays(),
         }
 
@@ -471,10 +497,35 @@ class LandmarkModel(KeyframeRecognition):
             for i, kf in enumerate(kfs):
                 s, e = int(to[i]), int(to[i + 1])
                 kf.tilted = (a["tilt_keypoints"][s:e], td[s:e], a["tilt_point_ids"][s:e])
+        _attach_images(kfs, a)
         obs = {"point": a["obs_point"], "keyframe": a["obs_keyframe"], "feature": a["obs_feature"]}
         tables = {k: a[k] for k in _TABLES if k in a}
         version, meta = int(manifest["version"]), manifest["meta"]
         return cls(camera, detector, kfs, a["points"], obs, version, meta, tables)
+
+
+def _image_arrays(keyframes: list[Keyframe]) -> dict[str, np.ndarray]:
+    """The keyframes' PNG images, concatenated like their features (none unless all have
+    one)."""
+    if not keyframes or any(kf.image is None for kf in keyframes):
+        return {}
+    imgs = [np.asarray(kf.image, np.uint8) for kf in keyframes]
+    offsets = np.concatenate([[0], np.cumsum([len(b) for b in imgs])]).astype(np.int64)
+    return {
+        "image_offsets": offsets,
+        "image_scales": np.array([kf.image_scale for kf in keyframes], np.float64),
+        "images": np.concatenate(imgs),
+    }
+
+
+def _attach_images(kfs: list[Keyframe], a: dict) -> None:
+    """Each keyframe's stored image (a slice of the memory-mapped array), when the model
+    was made with them."""
+    if "image_offsets" in a:
+        off = a["image_offsets"]
+        for i, kf in enumerate(kfs):
+            kf.image = a["images"][int(off[i]) : int(off[i + 1])]
+            kf.image_scale = float(a["image_scales"][i])
 
 
 def model_summary(model: LandmarkModel) -> dict:
@@ -649,6 +700,7 @@ _MAPPED = {
     "recognition_index.npy",
     "tilt_recognition_index.npy",
     "thumbnails.npy",
+    "images.npy",
 }
 
 

@@ -54,10 +54,15 @@ def model_lines(model: LandmarkModel) -> list[str]:
 
 
 def _tilt_lines(model: LandmarkModel) -> list[str]:
-    if not model.has_tilted:
-        return []
-    n = sum(len(kf.tilted[2]) for kf in model.keyframes)
-    return [f"tilted views       {n} features of the keyframes as from 45 and 60 deg higher"]
+    out = []
+    if model.has_tilted:
+        n = sum(len(kf.tilted[2]) for kf in model.keyframes)
+        out.append(f"tilted views       {n} features of the keyframes as from 45 and 60 deg higher")
+    if model.has_images:
+        mb = sum(len(kf.image) for kf in model.keyframes) / 1e6
+        n = len(model.keyframes)
+        out.append(f"keyframe images    {n} ({mb:.1f} MB), for far frames' patches")
+    return out
 
 
 def _kept_lines(model: LandmarkModel) -> list[str]:
@@ -180,6 +185,14 @@ class _Stages:
     "squashed along the up axis), for videos from well above the keyframes (a drone over "
     "a model made on foot). Off: a 30% smaller, faster-built model.",
 )
+@click.option(
+    "--keyframe-images/--no-keyframe-images",
+    default=BuildSettings.keyframe_images,
+    show_default=True,
+    help="Store the keyframes' grey images (PNG, about 0.2 MB each): a far landmark's "
+    "points are then placed by their keyframe patches, to a fraction of a pixel. Off: a "
+    "smaller model; far frames by keypoints alone.",
+)
 def build_model_cmd(
     inputs,
     camera_path,
@@ -195,6 +208,7 @@ def build_model_cmd(
     max_reproj_px,
     min_angle_deg,
     tilted_views,
+    keyframe_images,
 ):
     """Build a 360-degree landmark model from images (a folder or glob) or a video.
 
@@ -225,6 +239,7 @@ def build_model_cmd(
         roi=ROI.parse(roi),
         up=up,
         tilted_views=tilted_views,
+        keyframe_images=keyframe_images,
     )
     stages = _Stages()
     try:

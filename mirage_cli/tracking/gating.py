@@ -60,11 +60,15 @@ def frame_covariances(
 class PoseGate:
     """The gate and the covariances of a pose (a mixin of Tracker)."""
 
-    def _covariances(self, est: PoseEstimate, n: int, points=None):
-        return frame_covariances(
+    def _covariances(self, est: PoseEstimate, n: int, points=None, patched: bool = False):
+        res, shared = frame_covariances(
             est, n, self.camera, points, self.settings.refine.huber_px, self.model_rms_px,
             self.settings.model_error_points, self.model_error_scale,
         )  # fmt: skip
+        k = self.settings.patch_error_points
+        if patched and n > k:  # patch errors of one face's points err alike
+            res = res * (n / k)
+        return res, shared
 
     def _significant(
         self, est: PoseEstimate, n: int, mode: str, points, voting, radius_px=None
@@ -128,7 +132,8 @@ class PoseGate:
         )
         if not est.success:
             return res
-        cov_res, cov_model = self._covariances(est, ninl, points)
+        patched = self._anchor_patched if mode == "flow" else self._patched
+        cov_res, cov_model = self._covariances(est, ninl, points, patched)
         res.sigma_pos_m, res.sigma_rot_deg = sigmas(cov_res + cov_model)
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique

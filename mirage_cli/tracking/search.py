@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..features import guided_match
+from ..patches import affine_maps, correlate, keyframe_pyramid, templates
 from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
 from ..solver import solve_pose
@@ -77,8 +78,84 @@ class GuidedSearch:
                 if again[0].inliers.sum() > est.inliers.sum():
                     est, uv, X, kf, land, _ = again
                     radius /= 4
+        if est.success and self._patch_ok():
+            got = self._patch_solve(est.pose)
+            # only when the patches place clearly more points than the keypoints matched:
+            # as many (motion blur, a small face) and they err alike with a smaller sigma
+            if got is not None and got[0].inliers.sum() >= self.settings.patch_min_gain * (
+                est.inliers.sum()
+            ):
+                est, uv, X, kf, land = got
+                self._patched = True
         res = self._gate(est, len(uv), "detect", True, land, (X, uv), radius_px=radius)
         return self._accept(res, est, uv, X, kf, land)
+
+    def _patch_ok(self) -> bool:
+        mode = self.settings.patch_refine
+        if mode == "off" or self._gray is None or self._kf_image is None:
+            return False
+        return mode == "all" or self._small_box
+
+    def _patch_solve(self, pose: Pose):
+        """The pose again from the nearby keyframes' points placed by their patches
+        (patches.py): (estimate, uv, X, keyframe, on-landmark), or None."""
+        s = self.settings
+        cands = list(self.model.nearest_keyframes(pose, s.patch_keyframes))
+        seen: set = set()
+        Xs, uvs, pids, kfs = [], [], [], []
+        for k in cands:
+            kf = self.model.keyframes[k]
+            _, _, pid = kf.linked()
+            pid = np.unique(pid)
+            pid = pid[~np.isin(pid, list(seen))] if seen else pid
+            X = self.model.points[pid]
+            front = pose.transform(X)[:, 2] > 1e-3
+            # a template is the keyframe's view of a plane facing it: true enough only for
+            # a view from nearly the same direction (above 30-60 deg higher it misplaces)
+            a, b = X - kf.pose.center, X - pose.center
+            cos = np.einsum("ij,ij->i", a, b) / (
+                np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1) + 1e-12
+            )
+            front &= cos >= np.cos(np.radians(s.patch_max_angle_deg))
+            pid, X = pid[front], X[front]
+            if len(pid) > s.patch_max_points:  # evenly: enough to pin the pose
+                pick = np.linspace(0, len(pid) - 1, s.patch_max_points).astype(int)
+                pid, X = pid[pick], X[pick]
+            if not len(pid):
+                continue
+            pk, pc, A = affine_maps(self.camera, X, kf.pose, pose, self.model.camera)
+            good = np.isfinite(pc).all(axis=1) & np.isfinite(A).all(axis=(1, 2))
+            if not good.any():
+                continue
+            pyramid, sc = self._kf_pyramid(k)
+            tpl = templates(pyramid, pk[good] * sc, A[good] / sc)
+            pos, peak = correlate(self._gray, pc[good], tpl, s.patch_reach_px)
+            keep = np.isfinite(peak) & (peak >= s.patch_min_ncc)
+            Xs.append(X[good][keep])
+            uvs.append(pos[keep])
+            pids.append(pid[good][keep])
+            kfs.append(np.full(keep.sum(), k))
+            seen.update(pid.tolist())
+        if not Xs:
+            return None
+        X, uv, pid = np.concatenate(Xs), np.concatenate(uvs), np.concatenate(pids)
+        if len(X) < s.min_track_inliers:
+            return None
+        est = solve_pose(
+            X, uv, self.camera, reference_pose=pose, method=s.method, ransac=s.patch_ransac,
+            refine=s.refine,
+        )  # fmt: skip
+        if not est.success or est.inliers.sum() < s.min_track_inliers:
+            return None
+        kf = int(np.bincount(np.concatenate(kfs)).argmax())
+        return est, uv, X, kf, self.on_landmark[pid]
+
+    def _kf_pyramid(self, k: int) -> tuple[list[np.ndarray], float]:
+        """Keyframe k's image pyramid (made once) and its pixels per keyframe pixel."""
+        if k not in self._pyramids:
+            kf = self.model.keyframes[k]
+            self._pyramids[k] = (keyframe_pyramid(self._kf_image(k)), kf.image_scale)
+        return self._pyramids[k]
 
     def _guided_solve(self, kps, desc, pred: Pose, radius: float):
         """Guided matches within `radius` of where `pred` projects the nearby keyframes'

@@ -57,6 +57,15 @@ class TrackSettings:
     # model's points plus this margin (-1: always the whole frame)
     upsample_below_px: int = 320  # a smaller detection box (longer side, px; 0: never)...
     upsample_to_px: int = 480  # ...is upsampled to this size before detection
+    patch_refine: str = "small"  # place points by keyframe patches: off | small | all
+    patch_keyframes: int = 2
+    patch_reach_px: int = 4
+    patch_max_angle_deg: float = 20.0  # between the keyframe's and the frame's rays
+    patch_min_ncc: float = 0.8
+    patch_min_gain: float = 2.0  # patch inliers at least this x the keypoints' to be used
+    patch_max_points: int = 300  # per keyframe
+    patch_error_points: float = 60.0  # patch errors average like this many points
+    patch_ransac: RansacOptions = field(default_factory=lambda: RansacOptions(threshold_px=2.0))
     shrink_above: float = 1.5  # the landmark looks this many times larger than from its
     # nearest keyframe (a sharper camera than the model's, or nearer): the detection box
     # is shrunk by that factor / SHRINK_MARGIN first (the keyframes hold no finer

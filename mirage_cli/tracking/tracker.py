@@ -137,6 +137,14 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._target = land.mean(axis=0) if len(land) else np.zeros(3)
         self._kf_elev = np.array([elevation_deg(kf.pose.center, self._target) for kf in kfs])
         self._has_tilted = model.has_tilted  # once: every detection asks
+        # keyframe images for placing points by their patches (patches.py), when the
+        # model holds them: index -> grey image, and their pyramids once made
+        self._kf_image = (lambda k: kfs[k].gray_image()) if model.has_images else None
+        self._pyramids: dict = {}
+        self._gray: np.ndarray | None = None
+        self._small_box = False  # this detection's box was upsampled (a small, far view)
+        # the points were placed by their patches: this detection's, the flow's anchor's
+        self._patched = self._anchor_patched = False
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
         self.model_error_scale = float(model.meta.get("check", {}).get("error_scale", 1.0))
@@ -156,6 +164,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         res = None
         self._uncertain_pose = None
         self._frame_no += 1
+        self._gray, self._small_box = gray, False
         chained = self._from_unconfirmed()
         self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
         if self.lost_run > 0 and (self.prev_pose is not None or self.hint is None):
@@ -173,6 +182,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             if res.ok and res.mode != "flow":
                 self.anchor_gray, self.anchor_px = gray, self.track_px.copy()
                 self.anchor_n = len(self.anchor_px)
+                self._anchor_patched = self._patched
                 self.anchor_rmse = res.rmse_px
                 self._anchor_level = None
                 self._anchor_no = self._frame_no
@@ -236,6 +246,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
 
     def _detect(self, gray: np.ndarray) -> FrameRecord:
         self.since_detect = 0
+        self._patched = False
         pred = self._predicted()
         box = self._model_box(pred, gray.shape) if pred is not None else None
         early = self._pending.pop((self._frame_no, "box"), None) if pred is not None else None
@@ -251,6 +262,11 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             else:
                 kps, desc = self._box_features(gray, box, self.detector)
             self._at_scale(max(1.0, used[4]) if used else self.full_scale)
+            self._small_box = (
+                bool(used)
+                and used[4] <= 1
+                and (max(used[2] - used[0], used[3] - used[1]) < self.settings.upsample_below_px)
+            )
             if len(kps) >= self.settings.min_track_inliers:
                 res = self._confirm(self._guided(kps, desc, pred), gray)
                 # an uncertain pose found the landmark where predicted and says its view
