@@ -13,6 +13,8 @@ from ..records import FrameRecord, Reason, Status
 from ..solver import solve_pose
 from ..tilt import ABOVE_DEG, elevation_deg
 
+PYRAMIDS_KEPT = 12  # keyframe image pyramids kept for patches
+
 # a shrunk box keeps this much more resolution than the keyframes' (sub-pixel keypoints):
 # 720p / 1080p orbits against the sample's model, p95 2.52 / 2.62 mm shrunk to the keyframes'
 # scale, 1.98 / 2.40 mm with this margin (2.22 / 2.99 unshrunk)
@@ -151,11 +153,15 @@ class GuidedSearch:
         return est, uv, X, kf, self.on_landmark[pid]
 
     def _kf_pyramid(self, k: int) -> tuple[list[np.ndarray], float]:
-        """Keyframe k's image pyramid (made once) and its pixels per keyframe pixel."""
-        if k not in self._pyramids:
-            kf = self.model.keyframes[k]
-            self._pyramids[k] = (keyframe_pyramid(self._kf_image(k)), kf.image_scale)
-        return self._pyramids[k]
+        """Keyframe k's image pyramid and its pixels per keyframe pixel; the last
+        `PYRAMIDS_KEPT` used are kept (0.4 MB each at 640x480; a 144-keyframe orbit)."""
+        got = self._pyramids.pop(k, None)
+        if got is None:
+            got = (keyframe_pyramid(self._kf_image(k)), self.model.keyframes[k].image_scale)
+            while len(self._pyramids) >= PYRAMIDS_KEPT:
+                self._pyramids.pop(next(iter(self._pyramids)))
+        self._pyramids[k] = got  # (dicts keep insertion order: the oldest goes first)
+        return got
 
     def _guided_solve(self, kps, desc, pred: Pose, radius: float):
         """Guided matches within `radius` of where `pred` projects the nearby keyframes'
