@@ -130,30 +130,31 @@ def test_templates_follow_the_stored_images_scale(scale):
     assert np.abs(got - full).mean() < 1.5  # grey levels: the same picture
 
 
-def test_a_far_view_is_measured_by_patches_more_closely_than_by_keypoints(sample_model):
-    """The sample landmark from 4 m (a third of its keyframes' scale: the box upsampled),
-    each view detected with the truth as its prediction. Placed by their patches, 3x the
-    points carry the pose and its median error falls below 0.8x the keypoints'; every
-    patch pose within 3 sigma of the truth (patch errors counted as `patch_error_points`
-    independent points, so the sigma does not shrink with the point count)."""
-    from test_track import _views_from_above
+def test_far_views_are_tracked_by_patches_where_keypoints_are_too_vague(sample_model):
+    """The sample landmark from 5.5 m (under a quarter of its keyframes' scale: the box
+    upsampled), 12 views round it, each detected with the truth as its prediction. By
+    keypoints alone 40-80 inliers leave 5 of the 12 `uncertain`; the patches, where their
+    covariance says they measure better, place 300-480 points and leave at most 2: at
+    least 2 more views ok, every ok pose within 3 sigma and 2.5% of the range of the truth
+    (patch errors counted as `patch_error_points` independent points)."""
+    from test_track import LANDMARK_TARGET, _views_from_above
 
     from mirage_cli.records import Status
     from mirage_cli.tracking import Tracker, TrackSettings
 
     model = LandmarkModel.load(sample_model)
-    cam, views = _views_from_above([13], [10, 70, 130, 190, 250, 310], dist=4.0)
-    got = {}
+    cam, views = _views_from_above([13], list(range(10, 360, 30)), dist=5.5)
+    ok, patched = {}, 0
     for mode in ("small", "off"):
-        rows = []
+        ok[mode] = 0
         for pose, gray in views:
             t = Tracker(model, cam, TrackSettings(patch_refine=mode))
             t.prev_pose = pose  # predicted at the truth, as a frame after a tracked one
             rec = t.process(gray)
-            assert rec.status == Status.OK and t._patched == (mode == "small")
-            rows.append((rec.inliers, rec.pose.distance_to(pose), rec.sigma_pos_m))
-        got[mode] = np.array(rows)
-    patch, keyp = got["small"], got["off"]
-    assert np.median(patch[:, 0]) >= 3 * np.median(keyp[:, 0]), (patch[:, 0], keyp[:, 0])
-    assert np.median(patch[:, 1]) < 0.8 * np.median(keyp[:, 1]), (patch[:, 1], keyp[:, 1])
-    assert (patch[:, 1] < 3 * patch[:, 2]).all(), patch
+            patched += t._patched
+            if rec.status == Status.OK:
+                ok[mode] += 1
+                err = rec.pose.distance_to(pose)
+                assert err < 3 * rec.sigma_pos_m, (mode, err, rec.sigma_pos_m)
+                assert err < 0.025 * np.linalg.norm(pose.center - LANDMARK_TARGET)
+    assert ok["small"] >= ok["off"] + 2 and patched >= 4, (ok, patched)

@@ -10,7 +10,7 @@ from ..features import guided_match
 from ..patches import affine_maps, correlate, keyframe_pyramid, templates
 from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
-from ..solver import solve_pose
+from ..solver import sigmas, solve_pose
 from ..tilt import ABOVE_DEG, elevation_deg
 
 PYRAMIDS_KEPT = 12  # keyframe image pyramids kept for patches
@@ -82,15 +82,24 @@ class GuidedSearch:
                     radius /= 4
         if est.success and self._patch_ok():
             got = self._patch_solve(est.pose)
-            # only when the patches place clearly more points than the keypoints matched:
-            # as many (motion blur, a small face) and they err alike with a smaller sigma
-            if got is not None and got[0].inliers.sum() >= self.settings.patch_min_gain * (
-                est.inliers.sum()
-            ):
+            if got is not None and self._patches_better(est, (X, uv), got):
                 est, uv, X, kf, land = got
                 self._patched = True
         res = self._gate(est, len(uv), "detect", True, land, (X, uv), radius_px=radius)
         return self._accept(res, est, uv, X, kf, land)
+
+    def _patches_better(self, est, points, got) -> bool:
+        """Is the patch pose `got` the better measurement? Only with clearly more points
+        than the keypoints matched (as many, under motion blur or on a small face, they
+        err alike with a smaller sigma) and, as their covariances say, a smaller position
+        sigma: a landmark large enough for fine keypoints (the stress orbit at 2.5 m) is
+        measured as well by them."""
+        n = int(got[0].inliers.sum())
+        if n < self.settings.patch_min_gain * est.inliers.sum():
+            return False
+        mine = self._covariances(est, int(est.inliers.sum()), points)[0]
+        theirs = self._covariances(got[0], n, (got[2], got[1]), patched=True)[0]
+        return sigmas(theirs)[0] < sigmas(mine)[0]
 
     def _patch_ok(self) -> bool:
         mode = self.settings.patch_refine
