@@ -20,6 +20,10 @@ mirage: built with the defaults, and with every view and every point kept (`--ro
 A wrong pose is an ok frame more than 10 cm or 5 deg off (real sets: 2.5% of the range or
 5 deg, whichever is smaller in metres). Honesty = RMS error / RMS reported 1-sigma.
 
+Each real set is also tracked with its frames shrunk 2x and 3x (`--shrink`): the
+landmark then looks as from 2-3x further against the keyframes (the case for keyframe
+patches), on real pixels.
+
     python benchmarks/real.py                     # every set present, every system
     python benchmarks/real.py --systems mirage,plain --sets dtu_scan37
 """
@@ -38,6 +42,7 @@ from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
 
 blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage` runs it
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mirage_cli import __version__  # noqa: E402
@@ -137,6 +142,15 @@ def load(folder: Path):
     return camera, frames, truth
 
 
+def shrunk(camera: Camera, frames: list, f: float):
+    """The frames and their camera shrunk `f` times: the landmark looks as from `f` times
+    further with the same camera, against keyframes at their own scale (the far family's
+    situation, on real pixels; the model keeps its camera)."""
+    w, h = round(camera.width / f), round(camera.height / f)
+    small = [cv2.resize(im, (w, h), interpolation=cv2.INTER_AREA) for im in frames]
+    return camera.scaled(w, h), small
+
+
 def model_for(folder: Path, camera: Camera, settings: BuildSettings):
     kf = folder / "keyframes"
     views = views_from_inputs([str(kf)], camera, settings, poses_csv=kf / "poses.csv")
@@ -186,6 +200,7 @@ def main():
     ap.add_argument("--systems", default=",".join(systems_all))
     ap.add_argument("--no-forward", action="store_true", help="skip the synthetic scene")
     ap.add_argument("--jobs", type=int, default=2, help="render processes (first run only)")
+    ap.add_argument("--shrink", default="2,3", help="also each real set's frames shrunk by")
     args = ap.parse_args()
     systems = [s.strip() for s in args.systems.split(",") if s.strip()]
     bad = [s for s in systems if s not in systems_all]
@@ -204,17 +219,24 @@ def main():
     sets = real_sets(args.sets.split(",") if args.sets else None)
     if not sets:
         notes.append(f"no real set found under {REAL}")
-    scenes = [(d.name, d, False) for d in sets]
+    shrinks = [float(f) for f in args.shrink.split(",") if f.strip()]
+    scenes = [(d.name, d, False, 1.0) for d in sets]
+    scenes += [(f"{d.name} shrunk {f:g}x", d, False, f) for d in sets for f in shrinks]
     if not args.no_forward:
-        scenes.append(("forward (synthetic)", forward_scene(args.jobs), True))
+        scenes.append(("forward (synthetic)", forward_scene(args.jobs), True, 1.0))
     header = (
         "| scene | system | tracked % | wrong | pos median mm | pos p95 mm | rot median deg "
         "| rot p95 deg | honesty pos / rot | fps |"
     )
     lines = [header, "|" + "---|" * 10]
-    for name, folder, synthetic in scenes:
+    models = {}
+    for name, folder, synthetic, shrink in scenes:
         camera, frames, truth = load(folder)
-        model = model_for(folder, camera, BuildSettings())
+        if folder not in models:
+            models[folder] = model_for(folder, camera, BuildSettings())
+        model = models[folder]
+        if shrink != 1.0:  # a camera that far again (or that much coarser), real pixels
+            camera, frames = shrunk(camera, frames, shrink)
         runs = [(s, systems_all[s], model, labels[s]) for s in systems]
         if synthetic and "mirage" in systems:
             full = BuildSettings(spacing_deg=1.0, roi=ROI("none"))
