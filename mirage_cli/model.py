@@ -103,7 +103,7 @@ def encode_image(gray: np.ndarray, max_px: int = MAX_IMAGE_PX) -> tuple[np.ndarr
     scale = 1.0
     while max(gray.shape[:2]) > max_px:
         gray, scale = cv2.pyrDown(gray), scale / 2
-    ok, buf = cv2.imencode(".png", gray, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    _, buf = cv2.imencode(".png", gray, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     return buf.ravel().astype(np.uint8), scale
 
 

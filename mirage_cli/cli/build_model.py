@@ -189,9 +189,9 @@ class _Stages:
     "--keyframe-images/--no-keyframe-images",
     default=BuildSettings.keyframe_images,
     show_default=True,
-    help="Store the keyframes' grey images (PNG, about 0.2 MB each): a far landmark's "
-    "points are then placed by their keyframe patches, to a fraction of a pixel. Off: a "
-    "smaller model; far frames by keypoints alone.",
+    help="Store the keyframes' grey images (PNG, about 0.14 MB each at 640x480): a far "
+    "landmark's points are then placed by their keyframe patches, to a fraction of a "
+    "pixel. Off: a smaller model; far frames by keypoints alone.",
 )
 def build_model_cmd(
     inputs,

@@ -160,6 +160,12 @@ class DetectionSchedule:
         of the pixels)."""
         return _scaled_detect(gray, self.full_scale, detector)
 
+    def _upsamples(self, box) -> bool:
+        """Whether `_box_features` upsamples the box (None: the whole frame, never)."""
+        if box is None or box[4] > 1:
+            return False
+        return max(box[2] - box[0], box[3] - box[1]) < self.settings.upsample_below_px
+
     def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
         """Features in the pixel box (None: the whole frame): shrunk first when the landmark
         looks larger than from its keyframes, else upsampled when the box is small."""
@@ -171,7 +177,7 @@ class DetectionSchedule:
         if shrink > 1:  # the landmark larger than in its keyframes: at their scale
             up = 1 / shrink
             crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_AREA)
-        elif max(crop.shape) < self.settings.upsample_below_px:  # small and far: finer features
+        elif self._upsamples(box):  # small and far: finer features
             up = self.settings.upsample_to_px / max(crop.shape)
             crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
         kps, desc = detect(crop, detector)

@@ -112,13 +112,11 @@ class GuidedSearch:
         (patches.py): (estimate, uv, X, keyframe, on-landmark), or None."""
         s = self.settings
         cands = list(self.model.nearest_keyframes(pose, s.patch_keyframes))
-        seen: set = set()
+        seen = np.zeros(0, np.int64)  # points an earlier keyframe already tried
         Xs, uvs, pids, kfs = [], [], [], []
         for k in cands:
             kf = self.model.keyframes[k]
-            _, _, pid = kf.linked()
-            pid = np.unique(pid)
-            pid = pid[~np.isin(pid, list(seen))] if seen else pid
+            pid = np.setdiff1d(kf.point_ids[kf.point_ids >= 0], seen)  # (sorted, unique)
             X = self.model.points[pid]
             front = pose.transform(X)[:, 2] > 1e-3
             # a template is the keyframe's view of a plane facing it: true enough only for
@@ -146,7 +144,7 @@ class GuidedSearch:
             uvs.append(pos[keep])
             pids.append(pid[good][keep])
             kfs.append(np.full(keep.sum(), k))
-            seen.update(pid.tolist())
+            seen = np.concatenate([seen, pid])
         if not Xs:
             return None
         X, uv, pid = np.concatenate(Xs), np.concatenate(uvs), np.concatenate(pids)

@@ -262,11 +262,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
             else:
                 kps, desc = self._box_features(gray, box, self.detector)
             self._at_scale(max(1.0, used[4]) if used else self.full_scale)
-            self._small_box = (
-                bool(used)
-                and used[4] <= 1
-                and (max(used[2] - used[0], used[3] - used[1]) < self.settings.upsample_below_px)
-            )
+            self._small_box = self._upsamples(used)
             if len(kps) >= self.settings.min_track_inliers:
                 res = self._confirm(self._guided(kps, desc, pred), gray)
                 # an uncertain pose found the landmark where predicted and says its view
