@@ -141,6 +141,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         # model holds them: index -> grey image, and their pyramids once made
         self._kf_image = (lambda k: kfs[k].gray_image()) if model.has_images else None
         self._pyramids: dict = {}
+        self._normals: np.ndarray | None = None  # the model points' (patches), when asked
         self._gray: np.ndarray | None = None
         self._small_box = False  # this detection's box was upsampled (a small, far view)
         # the points were placed by their patches: this detection's, the flow's anchor's
