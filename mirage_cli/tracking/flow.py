@@ -129,6 +129,9 @@ class FlowTracking:
         does contradict it: the flow may follow a look-alike side (tuning seed above 7:
         146 wrong poses when the flow was kept through its ambiguous detections), so the
         frame is the detection's. The next regular detection tries again."""
+        refreshed = self._patch_refresh()
+        if refreshed is not None:
+            return refreshed
         scale = self.px_scale
         res = self._detect(gray)
         found = self._uncertain_pose  # the detection's own pose, if it was uncertain

@@ -142,6 +142,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._kf_image = (lambda k: kfs[k].gray_image()) if model.has_images else None
         self._pyramids: dict = {}
         self._normals: np.ndarray | None = None  # the model points' (patches), when asked
+        self._gray_levels: list[np.ndarray] = []
         self._gray: np.ndarray | None = None
         self._small_box = False  # this detection's box was upsampled (a small, far view)
         # the points were placed by their patches: this detection's, the flow's anchor's
@@ -166,6 +167,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._uncertain_pose = None
         self._frame_no += 1
         self._gray, self._small_box = gray, False
+        self._gray_levels = [gray]  # its pyramid, as far as the patches asked
         chained = self._from_unconfirmed()
         self._pending = {k: f for k, f in self._pending.items() if k[0] >= self._frame_no}
         if self.lost_run > 0 and (self.prev_pose is not None or self.hint is None):
