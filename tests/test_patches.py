@@ -260,3 +260,51 @@ def test_views_from_50_deg_above_are_placed_by_patches_warped_by_the_faces_norma
                 assert t._patched and rec.inliers >= 150, rec.inliers
                 assert e < 3 * rec.sigma_pos_m, (e, rec.sigma_pos_m)
     assert np.median(err["small"]) < 0.5 * np.median(err["off"]), err
+
+
+def test_a_flight_above_is_re_measured_by_patches_alone_at_its_regular_detections(
+    sample_model,
+):
+    """12 frames of a camera circling 50 deg above the sample's keyframes, 1 deg apart:
+    after the first frame's relocalisation, the regular detections (every
+    `redetect_every` + 1 frames) are made by the patches alone (mode `patch`, no
+    keypoints), every frame ok within 6 mm and 3 sigma of the truth."""
+    from test_track import _views_from_above
+
+    from mirage_cli.tracking import Tracker, TrackSettings
+
+    model = LandmarkModel.load(sample_model)
+    cam, views = _views_from_above([50], [15 + i for i in range(12)])
+    t = Tracker(model, cam, TrackSettings())
+    modes = []
+    for pose, gray in views:
+        rec = t.process(gray)
+        assert rec.ok, (len(modes), rec.status, rec.reason)
+        e = rec.pose.distance_to(pose)
+        assert e < 0.006 and e < 3 * rec.sigma_pos_m, (len(modes), rec.mode, e, rec.sigma_pos_m)
+        modes.append(rec.mode)
+    assert modes[0] == "relocalise" and modes.count("patch") >= 1, modes
+    assert "detect" not in modes[modes.index("patch") :], modes
+
+
+def test_patches_from_a_pose_beyond_their_reach_are_found_from_a_coarser_level(sample_model):
+    """A view from 50 deg above, searched from a pose 3 cm off (15-25 px: beyond the 4 px
+    reach, as the last pose of a lost stretch is): at the frame's own pixels the patches
+    give no pose; from its quarter size down they find it within 3 mm."""
+    from test_track import _views_from_above
+
+    from mirage_cli.pose import Pose
+    from mirage_cli.tracking import Tracker, TrackSettings
+
+    model = LandmarkModel.load(sample_model)
+    cam, [(pose, gray)] = _views_from_above([50], [75])
+    t = Tracker(model, cam, TrackSettings())
+    t._gray, t._gray_levels = gray, [gray]
+    off = Pose(pose.R, pose.t + np.array([0.03, -0.015, 0.01]))
+    shift = np.linalg.norm(cam.project(model.points, off) - cam.project(model.points, pose), axis=1)
+    assert np.median(shift) > 10
+    fine = t._patch_solve(off)
+    assert fine is None or fine[0].pose.distance_to(pose) > 0.01
+    got = t._patch_search(off, 2)
+    assert got is not None and got[0].pose.distance_to(pose) < 0.003, got and got[0].pose
+    assert got[0].inliers.sum() >= 100

@@ -64,6 +64,7 @@ class TrackSettings:
     patch_max_angle_normal_deg: float = 60.0  # the same for a point on a face (its normal)
     patch_max_slant_deg: float = 75.0  # a face seen more obliquely gives no template
     patch_flat_max: float = 0.05  # a point's neighbours this flat make a face (patches.py)
+    patch_coarse_level: int = 2  # patches alone, off the prediction: from this level down
     patch_refresh: bool = True  # from above: regular detections by patches alone
     patch_refresh_min: int = 60  # points they must place (else keypoints as usual)
     patch_min_ncc: float = 0.8
