@@ -30,6 +30,7 @@ FORMAT = "mirage-landmark-model"
 FORMAT_VERSION = 1
 THUMB_WIDTH = 160
 MAX_IMAGE_PX = 2048  # keyframe images stored for patches: longer side at most (halved)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass
@@ -54,10 +55,17 @@ class Keyframe:
     image_scale: float = 1.0
 
     def gray_image(self) -> np.ndarray | None:
-        """The stored grey image (decoded on each call; None when the model has none)."""
+        """The stored grey image (decoded on each call; None when the model has none). A
+        stored image that does not decode (a damaged file) is an InputError."""
         if self.image is None:
             return None
-        return cv2.imdecode(np.asarray(self.image, np.uint8), cv2.IMREAD_GRAYSCALE)
+        img = cv2.imdecode(np.asarray(self.image, np.uint8), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise InputError(
+                f"keyframe {self.name}'s stored image does not decode (the model file is "
+                "damaged); rebuild it with 'mirage build-model'"
+            )
+        return img
 
     def linked(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keypoints, descriptors, point_ids) of the features that have a 3D point."""
@@ -522,10 +530,22 @@ def _attach_images(kfs: list[Keyframe], a: dict) -> None:
     """Each keyframe's stored image (a slice of the memory-mapped array), when the model
     was made with them."""
     if "image_offsets" in a:
-        off = a["image_offsets"]
+        off, scales, images = a["image_offsets"], a["image_scales"], a["images"]
+        if len(off) != len(kfs) + 1 or len(scales) != len(kfs) or np.any(np.diff(off) < 0):
+            raise ValueError("the keyframe images' table does not match the keyframes")
+        if off[0] != 0 or off[-1] != len(images):
+            raise ValueError("the keyframe images' table does not match the images")
         for i, kf in enumerate(kfs):
-            kf.image = a["images"][int(off[i]) : int(off[i + 1])]
-            kf.image_scale = float(a["image_scales"][i])
+            kf.image = images[int(off[i]) : int(off[i + 1])]
+            kf.image_scale = float(scales[i])
+            # a PNG's signature: checked here, a damaged image is an error before tracking
+            # (not inside it); decoding every image would cost 3 ms a keyframe at load
+            if bytes(kf.image[:8]) != PNG_SIGNATURE:
+                raise ValueError(f"keyframe {kf.name}'s stored image is not a PNG image")
+            if bytes(kf.image[-8:-4]) != b"IEND":  # the last chunk: a PNG cut short
+                raise ValueError(f"keyframe {kf.name}'s stored image is cut short")
+            if not (np.isfinite(kf.image_scale) and 0 < kf.image_scale <= 1):
+                raise ValueError(f"keyframe {kf.name}'s image scale {kf.image_scale} is invalid")
 
 
 def model_summary(model: LandmarkModel) -> dict:

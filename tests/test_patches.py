@@ -308,3 +308,75 @@ def test_patches_from_a_pose_beyond_their_reach_are_found_from_a_coarser_level(s
     got = t._patch_search(off, 2)
     assert got is not None and got[0].pose.distance_to(pose) < 0.003, got and got[0].pose
     assert got[0].inliers.sum() >= 100
+
+
+def test_a_model_whose_stored_images_are_damaged_is_a_one_line_error(sample_model, tmp_path):
+    """A model made by hand (checksums right) whose keyframe image is not a PNG: `mirage
+    track` stops before the first frame with one line and exit 2, no traceback. A PNG cut
+    short is found at load too; one damaged inside is an InputError when the patches
+    decode it."""
+    from conftest import run_mirage
+
+    from mirage_cli.errors import InputError
+
+    m = LandmarkModel.load(sample_model)
+    good = np.asarray(m.keyframes[2].image).copy()
+    m.keyframes[2].image = np.frombuffer(b"not a png image at all", np.uint8)
+    bad = tmp_path / "bad.mirage"
+    m.save(bad)
+    with pytest.raises(InputError, match="kf_002.jpg's stored image is not a PNG"):
+        LandmarkModel.load(bad)
+    p = run_mirage(
+        "track", SAMPLE / "orbit.mp4", "--model", bad, "--camera",
+        SAMPLE / "camera_truth.yaml", "-o", tmp_path / "p.csv",
+    )  # fmt: skip
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert "is not a PNG image" in p.stderr and len(p.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "p.csv").exists()
+    m.keyframes[2].image = good[: len(good) // 3]
+    cut = tmp_path / "cut.mirage"
+    m.save(cut)
+    with pytest.raises(InputError, match="kf_002.jpg's stored image is cut short"):
+        LandmarkModel.load(cut)
+    damaged = good.copy()
+    damaged[60:-12] = 7  # signature, header and end intact: the data inside is not
+    m.keyframes[2].image = damaged
+    m.save(cut)
+    kf = LandmarkModel.load(cut).keyframes[2]
+    with pytest.raises(InputError, match="does not decode"):
+        kf.gray_image()
+
+
+def test_a_keyframe_image_damaged_inside_stops_the_run_and_keeps_the_frames_tracked(
+    sample_model, tmp_path
+):
+    """Keyframe images damaged inside (signature and end intact: found only when the
+    patches decode them). 3 frames at the keyframes' height track by keypoints alone;
+    the views from 50 deg above that follow need the patches: `mirage track` stops there
+    with one line (exit 2), and the CSV keeps the 3 frames tracked before it."""
+    from conftest import run_mirage
+    from test_track import _views_from_above
+
+    m = LandmarkModel.load(sample_model)
+    for kf in m.keyframes:
+        img = np.asarray(kf.image).copy()
+        img[60:-12] = 7
+        kf.image = img
+    damaged = tmp_path / "damaged.mirage"
+    m.save(damaged)
+    _, level = _views_from_above([13], [15, 16, 17])
+    _, above = _views_from_above([50], [15, 16, 17, 18])
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, (_, gray) in enumerate(level + above):
+        cv2.imwrite(str(frames / f"f{i:02d}.png"), gray)
+    out = tmp_path / "poses.csv"
+    p = run_mirage(
+        "track", frames, "--model", damaged, "--camera", SAMPLE / "camera_truth.yaml",
+        "-o", out,
+    )  # fmt: skip
+    ours = [line for line in p.stderr.splitlines() if line.startswith("mirage")]
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert len(ours) == 1 and "does not decode" in ours[0] and "kept 3 frames" in ours[0], ours
+    rows = out.read_text().splitlines()
+    assert len(rows) == 4 and all(",ok," in r for r in rows[1:]), rows

@@ -216,7 +216,7 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
     done: list[tuple[str, int]] = []  # (status, inliers) per frame, for the summary
     decided: list[tuple] = []  # with -v: (frame, status, keyframe, inliers, matches, mode)
     verbose = reporter.verbose()
-    interrupted = None
+    interrupted = failed = None
     smoother = Smoother(job.smooth)
     t_start = time.perf_counter()
     with contextlib.ExitStack() as hold, contextlib.ExitStack() as stack:
@@ -271,8 +271,17 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
                 signals.note(e, f"no frame finished; {outputs[0][0]} not written")
                 raise
             interrupted = e
+        except InputError as e:  # found mid-run (a damaged keyframe image): as an interrupt,
+            hold.enter_context(signals.deferred())  # the frames already tracked are kept
+            emit(smoother.flush())
+            if not writers[0].rows:
+                raise
+            e.args = (f"{e} (kept {writers[0].rows} frames in {outputs[0][0]})",)
+            failed = e
         if not done and interrupted is None:
             raise InputError("no frames in the selected range (check --start/--end)")
+    if failed is not None:
+        raise failed  # after the outputs are in place
     elapsed = time.perf_counter() - t_start
     if interrupted is not None:
         signals.note(interrupted, f"kept {writers[0].rows} frames in {outputs[0][0]}")
