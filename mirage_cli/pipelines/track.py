@@ -264,20 +264,16 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
                 emit(smoother.push(rec))
             with signals.deferred():  # the last frames held back by the smoother
                 emit(smoother.flush())
-        except KeyboardInterrupt as e:
+        except (KeyboardInterrupt, InputError) as e:  # (InputError: a damaged keyframe image)
             hold.enter_context(signals.deferred())  # a second signal waits for the files
             emit(smoother.flush())  # the frames already tracked are kept
             if not writers[0].rows:
                 signals.note(e, f"no frame finished; {outputs[0][0]} not written")
                 raise
-            interrupted = e
-        except InputError as e:  # found mid-run (a damaged keyframe image): as an interrupt,
-            hold.enter_context(signals.deferred())  # the frames already tracked are kept
-            emit(smoother.flush())
-            if not writers[0].rows:
-                raise
-            e.args = (f"{e} (kept {writers[0].rows} frames in {outputs[0][0]})",)
-            failed = e
+            if isinstance(e, InputError):  # raised once the files are in place
+                e.args, failed = (f"{e} (kept {writers[0].rows} frames in {outputs[0][0]})",), e
+            else:
+                interrupted = e
         if not done and interrupted is None:
             raise InputError("no frames in the selected range (check --start/--end)")
     if failed is not None:

@@ -37,6 +37,7 @@ from ..solver import warm_up as _warm_up_solver
 from ..tilt import elevation_deg
 from .flow import FlowTracking, _deviation
 from .gating import PoseGate
+from .patching import PatchPlacement
 from .relocalise import Relocalisation
 from .schedule import DetectionSchedule
 from .search import SHRINK_MARGIN, GuidedSearch, _median_depth
@@ -52,7 +53,9 @@ def warm_up() -> None:
     guided_match(px, d, px, d, np.arange(2), 10.0)
 
 
-class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, PoseGate):
+class Tracker(
+    FlowTracking, DetectionSchedule, GuidedSearch, PatchPlacement, Relocalisation, PoseGate
+):
     """Stateful per-frame tracker; feed frames in order with `process(gray)`.
 
     Two kinds of detection. While tracking, features are detected in the box where the
@@ -137,16 +140,7 @@ class Tracker(FlowTracking, DetectionSchedule, GuidedSearch, Relocalisation, Pos
         self._target = land.mean(axis=0) if len(land) else np.zeros(3)
         self._kf_elev = np.array([elevation_deg(kf.pose.center, self._target) for kf in kfs])
         self._has_tilted = model.has_tilted  # once: every detection asks
-        # keyframe images for placing points by their patches (patches.py), when the
-        # model holds them: index -> grey image, and their pyramids once made
-        self._kf_image = (lambda k: kfs[k].gray_image()) if model.has_images else None
-        self._pyramids: dict = {}
-        self._normals: np.ndarray | None = None  # the model points' (patches), when asked
-        self._gray_levels: list[np.ndarray] = []
-        self._gray: np.ndarray | None = None
-        self._small_box = False  # this detection's box was upsampled (a small, far view)
-        # the points were placed by their patches: this detection's, the flow's anchor's
-        self._patched = self._anchor_patched = False
+        self._init_patches(model)  # placing points by their keyframe patches (patching.py)
         err = model.reprojection_errors()
         self.model_rms_px = float(np.sqrt(np.mean(err**2))) if err.size else 0.0
         self.model_error_scale = float(model.meta.get("check", {}).get("error_scale", 1.0))
