@@ -68,7 +68,7 @@ class GuidedSearch:
         if radius is None:  # the prediction's reach: wider the longer it is out of date
             radius = self.settings.guided_radius_px * (1 + min(self.lost_run, 3))
         first = self._guided_solve(kps, desc, pred, radius)
-        if first is None or not first[0].success:
+        if first is None:
             return self._patches_alone(pred, radius)
         est, uv, X, kf, land, _ = first
         if est.success and est.inliers.sum() < 0.5 * len(uv):
