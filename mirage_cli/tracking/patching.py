@@ -37,10 +37,11 @@ class PatchPlacement:
         self._patched = self._anchor_patched = False
 
     def _patches_alone(self, pred: Pose, radius: float) -> FrameRecord:
-        """Too few keypoints matched while tracking: the patches alone, from the prediction
-        (within their reach of it: a flowed or constant-velocity pose), where patches are
-        used. From 50 deg above (above tuning seed 8) the keypoints matched nothing for 40
-        frames that the patches place 300-450 points in."""
+        """The keypoints gave no pose the gate takes: the patches alone, where patches are
+        used, from the prediction (within their reach of a tracked frame's; a lost frame's,
+        the last pose without velocity, from the frame's quarter size down). From 50 deg
+        above (above tuning seed 8) the keypoints matched nothing for 40 frames that the
+        patches place 300-450 points in."""
         got = None
         if self._patch_ok(pred):
             # within reach of a tracked frame's prediction; else (lost: the last pose, no
