@@ -128,7 +128,7 @@ class BuildSettings:
     up: str = "auto"  # W's up axis: auto (from the views) | +z | -z | +y | -y | +x | -x
     max_video_frames: int = 400  # frames examined in a video (evenly spaced)
     tilted_views: bool = True  # also each keyframe as from 45 and 60 deg higher (tilt.py)
-    keyframe_images: bool = True  # store the images: far frames place points by patches
+    keyframe_images: bool = True  # store the images: far / from-above frames' patches
 
 
 UP_AXES = ("auto", "+z", "-z", "+y", "-y", "+x", "-x")

@@ -67,8 +67,8 @@ def affine_maps(
         ray = np.where(np.isfinite(normals).all(axis=1, keepdims=True), normals, ray)
     up = np.array([0.0, 0.0, 1.0])
     e1 = np.cross(ray, up)
-    level = np.linalg.norm(e1, axis=1) < 1e-3  # a horizontal face: any axis in it
-    e1[level] = np.cross(ray[level], np.array([1.0, 0.0, 0.0]))
+    along = np.linalg.norm(e1, axis=1) < 1e-3  # a normal along z: another axis for the plane
+    e1[along] = np.cross(ray[along], np.array([1.0, 0.0, 0.0]))
     e1 /= np.maximum(np.linalg.norm(e1, axis=1, keepdims=True), 1e-9)
     e2 = np.cross(ray, e1)
     d = depth * (PLANE_PX / kc.K[0, 0])

@@ -42,7 +42,7 @@ def model(built):
 def test_summary_printed(built):
     out = built[1].stdout
     assert "keyframes          36" in out and "azimuth coverage   360 deg" in out
-    assert "keyframe images    36 (" in out  # stored for far frames' patches
+    assert "keyframe images    36 (" in out  # stored for patches (far, from above)
 
 
 def test_no_keyframe_images_leaves_them_out(built, tmp_path):

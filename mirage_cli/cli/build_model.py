@@ -49,11 +49,11 @@ def model_lines(model: LandmarkModel) -> list[str]:
         *_roi_lines(model),
         *_up_lines(model),
         *_check_lines(model),
-        *_tilt_lines(model),
+        *_view_lines(model),
     ]
 
 
-def _tilt_lines(model: LandmarkModel) -> list[str]:
+def _view_lines(model: LandmarkModel) -> list[str]:
     out = []
     if model.has_tilted:
         n = sum(len(kf.tilted[2]) for kf in model.keyframes)
@@ -61,7 +61,7 @@ def _tilt_lines(model: LandmarkModel) -> list[str]:
     if model.has_images:
         mb = sum(len(kf.image) for kf in model.keyframes) / 1e6
         n = len(model.keyframes)
-        out.append(f"keyframe images    {n} ({mb:.1f} MB), for far frames' patches")
+        out.append(f"keyframe images    {n} ({mb:.1f} MB), for patches (far, from above)")
     return out
 
 
@@ -189,9 +189,10 @@ class _Stages:
     "--keyframe-images/--no-keyframe-images",
     default=BuildSettings.keyframe_images,
     show_default=True,
-    help="Store the keyframes' grey images (PNG, about 0.14 MB each at 640x480): a far "
-    "landmark's points are then placed by their keyframe patches, to a fraction of a "
-    "pixel. Off: a smaller model; far frames by keypoints alone.",
+    help="Store the keyframes' grey images (PNG, about 0.14 MB each at 640x480): the points "
+    "of a far landmark, or of a view from well above the keyframes, are then placed by "
+    "their keyframe patches, to a fraction of a pixel. Off: a smaller model; such frames "
+    "by keypoints alone.",
 )
 def build_model_cmd(
     inputs,

@@ -14,7 +14,6 @@ from ..patches import affine_maps, correlate, keyframe_pyramid, point_normals, t
 from ..pose import Pose
 from ..records import FrameRecord, Reason, Status
 from ..solver import sigmas, solve_pose
-from ..tilt import ABOVE_DEG, elevation_deg
 
 PYRAMIDS_KEPT = 12  # keyframe image pyramids kept for patches
 
@@ -63,10 +62,10 @@ class PatchPlacement:
         the patches place 250-470) and cost 24 ms a box plus 8 of guided matching; the
         patches take 10. None (detect as usual) unless they place `patch_refresh_min`."""
         s = self.settings
-        if not (s.patch_refresh and self._anchor_patched and self.velocity is not None):
+        if self.velocity is None or self.lost_run:
             return None
         pred = self._predicted()
-        if self.lost_run or not self._patch_ok(pred) or not self._above(pred):
+        if not self._refreshes(pred):
             return None
         self._patched = False
         got = self._patch_solve(pred)
@@ -111,9 +110,16 @@ class PatchPlacement:
 
     def _above(self, pose: Pose) -> bool:
         """Is the view `tilt.ABOVE_DEG` or more above the keyframes nearest it?"""
-        e = elevation_deg(pose.center, self._target)
         near = self.model.nearest_keyframes(pose, self.settings.patch_keyframes)
-        return e - min(self._kf_elev[k] for k in near) >= ABOVE_DEG
+        return bool(self._looked_down_on(pose, near))
+
+    def _refreshes(self, pred: Pose) -> bool:
+        """Will the regular detection at `pred` be the patches alone (`_patch_refresh`)?
+        A view from above whose last detection was placed by patches."""
+        return (
+            self.settings.patch_refresh and self._anchor_patched and self._patch_ok(pred)
+            and self._above(pred)
+        )  # fmt: skip
 
     def _patch_search(self, pose: Pose, coarsest: int):
         """`_patch_solve` from the frame's pyramid level `coarsest` down to its own pixels,

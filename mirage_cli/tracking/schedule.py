@@ -56,13 +56,9 @@ class DetectionSchedule:
         k = self.lookahead
         if not k or len(ahead) < k or ahead[k - 1] is None or ahead[k - 1].shape != shape:
             return
-        s = self.settings
-        if (
-            s.patch_refresh and self._anchor_patched
-            and self.anchor_n >= 2 * s.patch_refresh_min and self._above(self._predicted(k))
-        ):  # fmt: skip
-            # a view from above, well placed by patches: they are expected to place it
-            # again then (`_patch_refresh`); the keypoints would go unused
+        if self.anchor_n >= 2 * self.settings.patch_refresh_min and self._refreshes(
+            self._predicted(k)
+        ):  # well placed by patches: they will place it again then; keypoints go unused
             return
         boxes = [self._model_box(p, shape) for p in (self.prev_pose, self._predicted(k))]
         box = None

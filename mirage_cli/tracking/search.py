@@ -143,8 +143,11 @@ class GuidedSearch:
         return self.model.points[pid], d, np.full(len(pid), k, np.int32), pid.astype(np.int64)
 
     def _below(self, pose: Pose, cands) -> set[int]:
+        """The candidate keyframes whose squashed views to match: those the pose looks
+        down on (`_looked_down_on`), when the model has them."""
+        return self._looked_down_on(pose, cands) if self._has_tilted else set()
+
+    def _looked_down_on(self, pose: Pose, cands) -> set[int]:
         """The candidate keyframes the pose looks down on from `tilt.ABOVE_DEG` higher."""
-        if not self._has_tilted:
-            return set()
         e = elevation_deg(pose.center, self._target)
         return {k for k in cands if e - self._kf_elev[k] >= ABOVE_DEG}
