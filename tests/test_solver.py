@@ -13,8 +13,14 @@ import pytest
 
 from mirage_cli import PoseEstimate, RansacOptions, RefineOptions, solve_pose
 from mirage_cli.camera import Camera
-from mirage_cli.pose import Pose, rotvec
-from mirage_cli.solver import cramer_rao_covariance, sandwich_covariance
+from mirage_cli.pose import Pose, look_at, rotvec
+from mirage_cli.solver import (
+    cramer_rao_covariance,
+    leverages,
+    sandwich_covariance,
+    sigmas,
+    verifiable,
+)
 from mirage_cli.synth import pnp_scene
 
 CAM = Camera.from_params(1280, 720, 1000.0)
@@ -293,6 +299,37 @@ def test_sandwich_covariance_is_honest_and_sees_a_bad_lever():
     few = sandwich_covariance(X[:3], u[:3], est.pose, CAM)
     assert few.shape == (6, 6) and not np.isfinite(few).any()  # 3 points: no redundancy
     assert np.isfinite(sandwich_covariance(X[:4], u[:4], est.pose, CAM)).all()  # 4 do
+
+
+def test_a_direction_resting_on_one_point_is_not_trusted():
+    """A far landmark's face (0.5 m at 5 m, 2 cm relief) leaves the rotation/translation
+    trade-off to one ground point 1.5 m off, 4 px wrong: it bends the pose 11-13 cm off
+    while every covariance claims 1-2 cm. Its leverage says so (about 1, the face's points
+    under 0.1); `verifiable` drops it, and the pose's sigma then covers its error."""
+    cam = Camera.from_params(640, 480, 600.0)
+    truth = look_at(np.array([5.0, 0.0, 0.3]), np.array([0.0, 0.0, 0.3]))
+    ref = look_at(np.array([5.02, 0.02, 0.32]), np.array([0.0, 0.0, 0.3]))
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        face = np.column_stack([
+            0.25 + rng.uniform(0, 0.02, 80), rng.uniform(-0.25, 0.25, 80),
+            rng.uniform(0.05, 0.55, 80),
+        ])  # fmt: skip
+        X = np.vstack([face, [[-1.2, 0.9, 0.0]]])
+        u = cam.project(X, truth) + rng.normal(scale=0.3, size=(81, 2))
+        u[80] += [4.0, 0.0]
+        est = solve_pose(X, u, cam, ref, refine=RefineOptions(huber_px=0.5))
+        h = leverages(X, u, est.pose, cam, 0.5)
+        assert h[80] > 0.99 and h[:80].max() < 0.1, (h[80], h[:80].max())
+        sw = sigmas(sandwich_covariance(X, u, est.pose, cam, 0.5))[0]
+        assert est.pose.distance_to(truth) > 4 * max(est.sigma_pos_m, sw)
+        v = verifiable(est, X, u, cam, 0.9, RefineOptions(huber_px=0.5))
+        assert v.success and v.inliers.sum() == 80 and not v.inliers[80]
+        err = v.pose.distance_to(truth)
+        assert err < 2 * v.sigma_pos_m, (err, v.sigma_pos_m)
+    # too few points left to fix a pose: a failure, not a pose on the rest
+    few = verifiable(solve_pose(X[74:], u[74:], cam, ref), X[74:], u[74:], cam, 0.5)
+    assert not few.success
 
 
 def test_compiled_sandwich_is_the_matrix_formula():

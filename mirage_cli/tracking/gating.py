@@ -10,7 +10,7 @@ import numpy as np
 from ..camera import Camera
 from ..evidence import chance_inlier_probability, is_evidence, search_area
 from ..records import FrameRecord, Measurement, Reason, Status
-from ..solver import PoseEstimate, RansacOptions, sandwich_covariance, sigmas
+from ..solver import PoseEstimate, RansacOptions, sandwich_covariance, sigmas, verifiable
 
 RANSAC_HYPOTHESES = RansacOptions.iterations  # how many poses RANSAC tries at most
 
@@ -119,7 +119,16 @@ class PoseGate:
 
         `voting` (per match; None: all) are the matches that could decide the pose: the
         inlier ratio counts among them, since matches to repeated texture or the ground are
-        expected to pick the wrong twin (a tiled floor in view is half the matches)."""
+        expected to pick the wrong twin (a tiled floor in view is half the matches).
+
+        First, a pose that rests on a single point in some direction is fitted again
+        without it (`max_leverage`, `solver.verifiable`): in place, so the caller keeps
+        the inliers the gate judged."""
+        if est.success and points is not None:
+            checked = verifiable(est, *points, self.camera, self.settings.max_leverage,
+                                 self.settings.refine)  # fmt: skip
+            if checked is not est:
+                vars(est).update(vars(checked))
         ninl = int(est.inliers.sum()) if est.success else 0
         res = FrameRecord(
             Status.LOST,
