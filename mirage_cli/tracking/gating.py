@@ -91,6 +91,16 @@ class PoseGate:
             total, int(inl.sum()), p, RANSAC_HYPOTHESES, self.settings.max_false_alarms
         )
 
+    def _verify(self, est: PoseEstimate, points) -> None:
+        """A pose that rests on a single point in some direction is fitted again without
+        it (`max_leverage`, `solver.verifiable`), in place: the gate's caller keeps the
+        inliers the gate judged."""
+        if est.success and points is not None:
+            checked = verifiable(est, *points, self.camera, self.settings.max_leverage,
+                                 self.settings.refine)  # fmt: skip
+            if checked is not est:
+                vars(est).update(vars(checked))
+
     def _jumped(self, pose) -> bool:
         """Further from the previous ok pose than the motion allows (the limits are per
         frame since that pose)."""
@@ -119,16 +129,8 @@ class PoseGate:
 
         `voting` (per match; None: all) are the matches that could decide the pose: the
         inlier ratio counts among them, since matches to repeated texture or the ground are
-        expected to pick the wrong twin (a tiled floor in view is half the matches).
-
-        First, a pose that rests on a single point in some direction is fitted again
-        without it (`max_leverage`, `solver.verifiable`): in place, so the caller keeps
-        the inliers the gate judged."""
-        if est.success and points is not None:
-            checked = verifiable(est, *points, self.camera, self.settings.max_leverage,
-                                 self.settings.refine)  # fmt: skip
-            if checked is not est:
-                vars(est).update(vars(checked))
+        expected to pick the wrong twin (a tiled floor in view is half the matches)."""
+        self._verify(est, points)
         ninl = int(est.inliers.sum()) if est.success else 0
         res = FrameRecord(
             Status.LOST,
