@@ -40,6 +40,7 @@ class Reason(str, Enum):
     OFF_LANDMARK = "off_landmark"  # the pose rests on the ground or background alone
     RESIDUAL = "residual"  # the reprojection RMS is above --max-rmse
     BEHIND = "behind"  # the landmark would be behind the camera
+    IMPLAUSIBLE = "implausible"  # the camera would be rolled far beyond every keyframe
     JUMP = "jump"  # the pose jumped further from the last one than the motion allows
     UNCERTAIN = "uncertain"  # its 1-sigma uncertainty is above the limits
 

@@ -17,7 +17,7 @@ from mirage_cli.features import to_gray
 from mirage_cli.frames import Frame, FrameSource
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pipelines.track import tracked_records
-from mirage_cli.pose import Pose
+from mirage_cli.pose import Pose, camera_roll_deg, look_at
 from mirage_cli.records import Cause, FrameRecord, Reason, Status
 from mirage_cli.synth import LANDMARK_TARGET
 from mirage_cli.tracking import Tracker, TrackSettings, schedule, track_frames
@@ -757,6 +757,32 @@ def test_view_from_45_deg_above_the_keyframes_is_found(sample_model):
         found[label] = ok
     assert found["tilted"] >= 11, found
     assert found["plain"] <= 8, found
+
+
+def test_a_view_rolled_far_beyond_the_keyframes_is_implausible(sample_model):
+    """The world's up in the image: 0 for a level camera, +-90 rolled a quarter turn, none
+    looking straight down. The sample's keyframes are level; a view of the landmark rolled
+    90 deg is found (SIFT turns with it) but refused as `implausible` by default, and ok
+    within 1 cm / 0.5 deg with `max_roll_deg` 180 (footage whose camera rolls freely)."""
+    from mirage_cli.render import Renderer
+    from mirage_cli.synth import landmark_scene
+
+    level = look_at(LANDMARK_TARGET + np.array([1.2, 0.4, 0.3]), LANDMARK_TARGET)
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # about z_c
+    rolled = Pose(quarter @ level.R, quarter @ level.t)
+    down = look_at(LANDMARK_TARGET + np.array([0.01, 0.0, 1.5]), LANDMARK_TARGET)
+    assert abs(camera_roll_deg(level)) < 1e-6
+    assert abs(abs(camera_roll_deg(rolled)) - 90.0) < 1e-6
+    assert np.isnan(camera_roll_deg(down))
+    cam = Camera.load(SAMPLE / "camera_truth.yaml")
+    img = Renderer(landmark_scene(0), cam, aa=1).render(rolled, 1.0, np.random.default_rng(5))
+    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    model = LandmarkModel.load(sample_model)
+    refused = Tracker(model, cam, TrackSettings()).process(gray)
+    assert refused.status != Status.OK and refused.reason == Reason.IMPLAUSIBLE, refused
+    free = Tracker(model, cam, TrackSettings(max_roll_deg=180.0)).process(gray)
+    assert free.ok, free
+    assert free.pose.distance_to(rolled) < 0.01 and free.pose.angle_to(rolled) < 0.5
 
 
 def test_views_from_55_60_deg_above_are_found_by_proposals(sample_model):

@@ -95,6 +95,13 @@ def format_options(f):
     default=TrackSettings.max_ok_rmse_px,
     help="Largest reprojection RMS (px) of an ok frame.",
 )
+@shown(
+    "--max-roll",
+    type=FiniteFloat(min=0, max=180),
+    default=TrackSettings.max_roll_deg,
+    help="A pose rolled more than DEG beyond every keyframe (the world's up in the image) "
+    "is implausible, not ok; 180: never.",
+)
 @file_option("--overlay", help="Write a video with the landmark axes, inliers and status drawn.")
 @file_option(
     "--rerun",
@@ -119,6 +126,7 @@ def track_cmd(
     smooth,
     min_inliers,
     max_rmse,
+    max_roll,
     overlay,
     rerun_path,
     **format_paths,
@@ -153,6 +161,7 @@ def track_cmd(
         flow=not no_flow,
         min_inliers=min_inliers,
         max_ok_rmse_px=max_rmse,
+        max_roll_deg=max_roll,
     )
     job = open_job(
         model, src, out, camera_path, settings, start, end, reporter=ui, every=every,

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..evidence import chance_inlier_probability, is_evidence, search_area
+from ..pose import camera_roll_deg
 from ..records import FrameRecord, Measurement, Reason, Status
 from ..solver import PoseEstimate, RansacOptions, sandwich_covariance, sigmas, verifiable
 
@@ -60,6 +61,8 @@ def frame_covariances(
 class PoseGate:
     """The gate and the covariances of a pose (a mixin of Tracker)."""
 
+    _kf_rolls: np.ndarray | None = None  # the keyframes' rolls (`_implausible`), when asked
+
     def _covariances(self, est: PoseEstimate, n: int, points=None, patched: bool = False):
         res, shared = frame_covariances(
             est, n, self.camera, points, self.settings.refine.huber_px, self.model_rms_px,
@@ -100,6 +103,22 @@ class PoseGate:
                                  self.settings.refine)  # fmt: skip
             if checked is not est:
                 vars(est).update(vars(checked))
+
+    def _implausible(self, pose) -> bool:
+        """Rolled more than `max_roll_deg` beyond every keyframe (W's up in the image,
+        `camera_roll_deg`): a drone or a robot keeps its camera about as level as the
+        model's were, and a face's print seen from the side can look like its twin on a
+        face the keyframes never saw only with the camera turned over (above tuning seed
+        22: the top face's photograph also on a side face; 131 ok poses looking at the
+        side face, rolled 43-123 deg, where the video and every keyframe are within 3)."""
+        if self._kf_rolls is None:
+            r = np.array([camera_roll_deg(kf.pose) for kf in self.model.keyframes])
+            self._kf_rolls = r[np.isfinite(r)]
+        roll = camera_roll_deg(pose)
+        if not len(self._kf_rolls) or not np.isfinite(roll):
+            return False
+        beyond = np.abs((roll - self._kf_rolls + 180.0) % 360.0 - 180.0).min()
+        return bool(beyond > self.settings.max_roll_deg)
 
     def _jumped(self, pose) -> bool:
         """Further from the previous ok pose than the motion allows (the limits are per
@@ -166,6 +185,9 @@ class PoseGate:
         if est.pose.transform(np.zeros((1, 3)))[0, 2] <= 0:
             res.reason = Reason.BEHIND
             return res  # the landmark behind the camera
+        if self._implausible(est.pose):
+            res.reason = Reason.IMPLAUSIBLE
+            return res
         if check_jump and self._jumped(est.pose):
             res.reason = Reason.JUMP
             return res

@@ -20,6 +20,8 @@ class TrackSettings:
     # of RANSAC's hypotheses would gather as much support from wrong matches (evidence.py)
     min_landmark_inliers: int = 10  # inliers on the landmark itself, not the ground
     max_ok_rmse_px: float = 2.0  # an ok frame's largest reprojection RMS (--max-rmse)
+    max_roll_deg: float = 45.0  # a pose rolled this much beyond every keyframe (W's up
+    # in the image) is `implausible` (--max-roll; 180: never)
     max_leverage: float = 0.9  # a point that carries more of a direction of the pose on
     # its own is dropped and the pose fitted without it (solver.verifiable)
     # RANSAC's inlier threshold and seed: 3 px, seed 0
