@@ -222,6 +222,17 @@ def test_no_landmark_anywhere_is_exit_3_with_the_rows_kept(sample_model, tmp_pat
     assert len(est) == 20 and (est["status"] == "lost").all()
 
 
+def test_max_roll_reaches_the_gate(sample_model, tmp_path, mirage):
+    """`--max-roll 0` refuses every pose not exactly as level as a keyframe: the sample's
+    first frames all come out `implausible`, exit 3 with the rows kept."""
+    out = tmp_path / "o.csv"
+    p = mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--end", "4",
+               "--max-roll", "0", "--smooth", "0", "-o", out)  # fmt: skip
+    assert_one_line_error(p, 3, "not found in any of the 4 frames")
+    est = pd.read_csv(out)
+    assert len(est) == 4 and (est["reason"] == "implausible").all(), est["reason"].tolist()
+
+
 def test_another_camera_than_the_models(sample_model, tmp_path, mirage):
     """A model built with one camera tracks video of another (a phone's photos, a drone's
     flight): the sample orbit's frames re-imaged exactly through a camera of another size,
