@@ -233,6 +233,20 @@ def test_max_roll_reaches_the_gate(sample_model, tmp_path, mirage):
     assert len(est) == 4 and (est["reason"] == "implausible").all(), est["reason"].tolist()
 
 
+def test_verbose_refusals_say_the_reason():
+    """`track -v` counts the refused frames by status and reason (the CSV's `reason`): a
+    lost frame refused as implausible is not mistaken for one that found nothing."""
+    from mirage_cli.cli.track import refusal_lines
+
+    rows = [(0, "lost", "", 70, 90, "relocalise", "lost", "implausible"),
+            (1, "lost", "", 0, 3, "relocalise", "lost", "few_matches"),
+            (2, "lost", "", 72, 88, "relocalise", "lost", "implausible"),
+            (3, "ok", "kf_001", 80, 95, "detect", "scheduled", "")]  # fmt: skip
+    lines = refusal_lines(rows)
+    assert "refused 2 frame(s) as lost, implausible (median 71 inliers): 0, 2" in lines, lines
+    assert "refused 1 frame(s) as lost, few_matches (median 0 inliers): 1" in lines, lines
+
+
 def test_another_camera_than_the_models(sample_model, tmp_path, mirage):
     """A model built with one camera tracks video of another (a phone's photos, a drone's
     flight): the sample orbit's frames re-imaged exactly through a camera of another size,

@@ -182,13 +182,15 @@ def track_cmd(
 def refusal_lines(records) -> list[str]:
     """-v after a run: the frames not ok by reason, and the keyframes poses came from."""
     out = []
-    refused = Counter(r[1] for r in records if r[1] != Status.OK.value)
-    for status, n in refused.most_common():
-        frames = [str(r[0]) for r in records if r[1] == status]
+    why = [(r[1], r[7] if len(r) > 7 and r[7] != r[1] else "") for r in records]
+    refused = Counter(w for w in why if w[0] != Status.OK.value)
+    for (status, reason), n in refused.most_common():
+        frames = [str(r[0]) for r, w in zip(records, why, strict=True) if w == (status, reason)]
         shown_ = ", ".join(frames[:8]) + (", ..." if len(frames) > 8 else "")
-        inl = [r[3] or 0 for r in records if r[1] == status]
+        inl = [r[3] or 0 for r, w in zip(records, why, strict=True) if w == (status, reason)]
+        label = f"{status}, {reason}" if reason else status
         out.append(
-            f"refused {n} frame(s) as {status} (median {np.median(inl):.0f} inliers): {shown_}"
+            f"refused {n} frame(s) as {label} (median {np.median(inl):.0f} inliers): {shown_}"
         )
     kfs = Counter(r[2] for r in records if r[1] == Status.OK.value and r[2])
     if kfs:

@@ -253,7 +253,8 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
                     done.append((rec.status, rec.inliers))
                     if verbose:
                         decided.append((rec.frame, str(rec.status), rec.keyframe, rec.inliers,
-                                        rec.matches, rec.mode, str(rec.cause)))  # fmt: skip
+                                        rec.matches, rec.mode, str(rec.cause),
+                                        str(rec.reason or "")))  # fmt: skip
                         reporter.detail(frame_line(rec), 2)
                 if len(done) % 10 == 0:
                     rate = len(done) / max(time.perf_counter() - t_start, 1e-9)
