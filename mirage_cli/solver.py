@@ -485,8 +485,8 @@ def verifiable(
     for _ in range(LEVERAGE_ROUNDS):
         idx = np.flatnonzero(est.inliers)
         h = leverages(X[idx], uv[idx], est.pose, camera, refine.huber_px)
-        high = ~(h <= max_leverage)
-        if not high.any():
+        high = h > max_leverage
+        if not high.any():  # (NaNs: a point at or behind the camera; nothing to judge by)
             return est
         keep = idx[~high]
         if len(keep) < 6:

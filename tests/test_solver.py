@@ -327,6 +327,11 @@ def test_a_direction_resting_on_one_point_is_not_trusted():
         assert v.success and v.inliers.sum() == 80 and not v.inliers[80]
         err = v.pose.distance_to(truth)
         assert err < 2 * v.sigma_pos_m, (err, v.sigma_pos_m)
+    # leverages that cannot be computed (a point behind the camera) leave the fit as it is
+    behind = X.copy()
+    behind[0] = 2 * ref.center - behind[0]  # mirrored through the camera
+    assert np.isnan(leverages(behind, u, est.pose, cam)).all()
+    assert verifiable(est, behind, u, cam, 0.9) is est
     # too few points left to fix a pose: a failure, not a pose on the rest
     few = verifiable(solve_pose(X[74:], u[74:], cam, ref), X[74:], u[74:], cam, 0.5)
     assert not few.success
