@@ -254,12 +254,3 @@ class Pose:
     def __repr__(self) -> str:
         c = np.round(self.center, 4).tolist()
         return f"Pose(center={c}, rpy_deg={np.round(self.rpy_deg, 3).tolist()})"
-
-
-def camera_roll_deg(pose: Pose) -> float:
-    """The angle of W's up axis in the image from the image's up (-y), in degrees; NaN for
-    a camera looking within 20 deg of straight up or down (no roll to speak of)."""
-    up = pose.R[:, 2]
-    if np.hypot(up[0], up[1]) < np.sin(np.radians(20.0)):
-        return float("nan")
-    return float(np.degrees(np.arctan2(up[0], -up[1])))

@@ -32,6 +32,15 @@ def up_angle(pose: Pose) -> float:
     return float(np.arctan2(up[0], -up[1]))
 
 
+def camera_roll_deg(pose: Pose) -> float:
+    """`up_angle` in degrees: how far a camera is rolled; NaN for a camera looking within
+    20 deg of straight up or down (W's up nearly along its axis: no roll to speak of)."""
+    up = pose.R[:, 2]
+    if np.hypot(up[0], up[1]) < np.sin(np.radians(20.0)):
+        return float("nan")
+    return float(np.degrees(up_angle(pose)))
+
+
 def tilted_features(
     gray: np.ndarray,
     pose: Pose,

@@ -17,9 +17,10 @@ from mirage_cli.features import to_gray
 from mirage_cli.frames import Frame, FrameSource
 from mirage_cli.model import LandmarkModel
 from mirage_cli.pipelines.track import tracked_records
-from mirage_cli.pose import Pose, camera_roll_deg, look_at
+from mirage_cli.pose import Pose, look_at
 from mirage_cli.records import Cause, FrameRecord, Reason, Status
 from mirage_cli.synth import LANDMARK_TARGET
+from mirage_cli.tilt import camera_roll_deg
 from mirage_cli.tracking import Tracker, TrackSettings, schedule, track_frames
 from mirage_cli.tracking.gating import frame_covariances
 from mirage_cli.tracking.smooth import SmoothSettings

@@ -182,12 +182,14 @@ def track_cmd(
 def refusal_lines(records) -> list[str]:
     """-v after a run: the frames not ok by reason, and the keyframes poses came from."""
     out = []
-    why = [(r[1], r[7] if len(r) > 7 and r[7] != r[1] else "") for r in records]
-    refused = Counter(w for w in why if w[0] != Status.OK.value)
-    for (status, reason), n in refused.most_common():
-        frames = [str(r[0]) for r, w in zip(records, why, strict=True) if w == (status, reason)]
+    refused: dict[tuple[str, str], list] = {}  # (status, reason) -> its records
+    for r in records:
+        if r[1] != Status.OK.value:
+            refused.setdefault((r[1], r[7]), []).append(r)
+    for (status, reason), rows in sorted(refused.items(), key=lambda kv: -len(kv[1])):
+        n, frames = len(rows), [str(r[0]) for r in rows]
         shown_ = ", ".join(frames[:8]) + (", ..." if len(frames) > 8 else "")
-        inl = [r[3] or 0 for r, w in zip(records, why, strict=True) if w == (status, reason)]
+        inl = [r[3] or 0 for r in rows]
         label = f"{status}, {reason}" if reason else status
         out.append(
             f"refused {n} frame(s) as {label} (median {np.median(inl):.0f} inliers): {shown_}"

@@ -9,9 +9,9 @@ import numpy as np
 
 from ..camera import Camera
 from ..evidence import chance_inlier_probability, is_evidence, search_area
-from ..pose import camera_roll_deg
 from ..records import FrameRecord, Measurement, Reason, Status
 from ..solver import PoseEstimate, RansacOptions, sandwich_covariance, sigmas, verifiable
+from ..tilt import camera_roll_deg
 
 RANSAC_HYPOTHESES = RansacOptions.iterations  # how many poses RANSAC tries at most
 
