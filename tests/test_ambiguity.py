@@ -36,6 +36,26 @@ def test_guided_match_prefers_the_predicted_copy_and_counts_points_not_views():
     assert len(qi) == 0
 
 
+def test_a_narrow_window_keeps_the_wide_ratio_test():
+    """A floor whose texture repeats every 25 px, seen from a pose that puts one copy 8 px
+    from a keypoint: a 10 px window alone matches it (the other copies are outside); with
+    `keep_px` the ratio test still sees the copy inside 40 px and refuses. A feature
+    without a copy inside 40 px is kept, and one matched beyond `keep_px` is dropped."""
+    rng = np.random.default_rng(3)
+    letter, unique, far = rng.uniform(0, 255, (3, 128)).astype(np.float32)
+    cand_px = np.array([[108.0, 100], [133, 100], [300, 300], [330, 340]])
+    cand_desc = np.stack([letter, letter, unique, far])
+    cand_point = np.arange(4)
+    q_px = np.array([[100.0, 100], [305, 303], [350, 340]])
+    q_desc = np.stack([letter + 0.5, unique + 0.5, far + 0.5])
+    qi, ci = guided_match(q_px, q_desc, cand_px, cand_desc, cand_point, 10.0)
+    assert cand_point[ci].tolist() == [0, 2]  # the floor's copy, as a narrow window sees it
+    qi, ci = guided_match(q_px, q_desc, cand_px, cand_desc, cand_point, 40.0, keep_px=10.0)
+    assert qi.tolist() == [1] and cand_point[ci].tolist() == [2]
+    qi, ci = guided_match(q_px, q_desc, cand_px, cand_desc, cand_point, 40.0)
+    assert cand_point[ci].tolist() == [2, 3]  # without keep_px: the 20 px one too
+
+
 def _all_pairs_match(q_px, q_desc, c_px, c_desc, c_point, radius, ratio=0.8):
     """guided_match's rule written plainly: every query against every candidate."""
     if q_desc.dtype == np.uint8:

@@ -64,7 +64,9 @@ class GuidedSearch:
         When under half of the matches agree (the prediction was off: stills taken apart,
         a sudden turn), the matches near the prediction miss many of the frame's points
         and hold wrong ones: match again around the pose just found (and its nearest
-        keyframes) within a quarter of the radius, and solve again from it."""
+        keyframes) within a quarter of the radius, and solve again from it. The ratio test
+        of that second match still looks over the whole radius (`guided_match`'s
+        `keep_px`): the pose it starts from may be the wrong one."""
         if radius is None:  # the prediction's reach: wider the longer it is out of date
             radius = self.settings.guided_radius_px * (1 + min(self.lost_run, 3))
         first = self._guided_solve(kps, desc, pred, radius)
@@ -72,7 +74,7 @@ class GuidedSearch:
             return self._patches_alone(pred, radius)
         est, uv, X, kf, land, _ = first
         if est.success and est.inliers.sum() < 0.5 * len(uv):
-            again = self._guided_solve(kps, desc, est.pose, radius / 4)
+            again = self._guided_solve(kps, desc, est.pose, radius, keep_px=radius / 4)
             if again is not None and again[0].success:
                 if again[0].inliers.sum() > est.inliers.sum():
                     est, uv, X, kf, land, _ = again
@@ -93,17 +95,18 @@ class GuidedSearch:
             self._uncertain_pose, self._patched = held, False
         return self._accept(res, est, uv, X, kf, land)
 
-    def _guided_solve(self, kps, desc, pred: Pose, radius: float):
+    def _guided_solve(self, kps, desc, pred: Pose, radius: float, keep_px: float | None = None):
         """Guided matches within `radius` of where `pred` projects the nearby keyframes'
-        points, and the pose from them: (estimate, uv, X, keyframe, on-landmark, may vote)
-        per match (None: too few matches)."""
+        points (within `keep_px`, when given, with the ratio test over `radius`), and the
+        pose from them: (estimate, uv, X, keyframe, on-landmark, may vote) per match (None:
+        too few matches)."""
         cands = list(self.model.nearest_keyframes(pred, self.settings.local_keyframes))
         X_all, d_all, kf_of, pid_all = self._candidates(cands, self._below(pred, cands))
         Xc = pred.transform(X_all)
         front = Xc[:, 2] > 1e-3
         uvp = self.camera.project(X_all[front], pred)
         qi, ci = guided_match(
-            kps, desc, uvp, d_all[front], pid_all[front], radius, self.settings.ratio
+            kps, desc, uvp, d_all[front], pid_all[front], radius, self.settings.ratio, keep_px
         )
         ci = np.flatnonzero(front)[ci]
         if len(qi) < self.settings.min_track_inliers:
