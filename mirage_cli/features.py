@@ -234,12 +234,9 @@ def guided_match(
     pair, the same matches).
 
     `keep_px` (< `radius_px`): keep only the matches within it of their prediction, the
-    ratio test still against every point within `radius_px`. A pose already close wants a
-    narrow window, but the ratio test only rejects a repeated texture whose other copies
-    lie inside the radius: narrowed with the window, it lets a text or tiled floor match
-    whichever copy the pose being tested puts there (tuning seed near 9: 13 floor matches
-    that agreed with a pose 9 cm off, 7 of them 12-44 px off at the truth, shrank its
-    sigma from 4.3 to 0.4 cm).
+    ratio test still over `radius_px`: narrowed with the window, it let a text or tiled
+    floor match whichever copy the pose being tested put there (near tuning seed 9: 13
+    floor matches agreed with a pose 9 cm off and shrank its sigma from 4.3 to 0.4 cm).
     """
     if keep_px is not None and keep_px < radius_px:
         qi, ci = guided_match(

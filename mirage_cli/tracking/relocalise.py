@@ -276,62 +276,6 @@ class Relocalisation:
                 return polished
         return self._accept(res, est, uv, X, kf, land)
 
-    def _polished(self, kps, desc, res: FrameRecord) -> FrameRecord | None:
-        """A relocalised pose measured again as a tracked frame is (ORB-SLAM's search by
-        projection), at the tracking radius: the weak-texture orbit's first frame was
-        relocalised 26 mm (2.8 sigma) off with 56 inliers; guided, 62 and 6 mm. A far
-        landmark is also measured in its box, upsampled, as the next tracked frame would
-        be, and the one with more inliers is kept: far tuning seed 19's first frame, 49
-        whole-frame inliers 10 cm (2.2 sigma) off, has 350 there and is 1.4 cm off (the
-        4 m stress orbit's relocalisation after its look-away: 266 in the whole frame, 100
-        in the box). Kept when ok, with at least the relocalisation's inliers, and not
-        moved as far as another hypothesis would be (`_moved`)."""
-        held, kept = self._uncertain_pose, (self.px_scale, self._small_box)
-        best, state = None, kept
-        g = self._guided(kps, desc, res.pose, self.settings.guided_radius_px)
-        if g.ok and g.inliers >= res.inliers and not self._moved(g.pose, res):
-            best, state = (g, self._tracked()), (self.px_scale, self._small_box)
-        box = self._model_box(res.pose, self._gray.shape) if self._gray is not None else None
-        if self._upsamples(box):
-            self._at_scale(1.0)
-            self._small_box = True
-            kps, desc = self._box_features(self._gray, box, self.detector)
-            g = self._guided(kps, desc, res.pose, self.settings.guided_radius_px)
-            if (
-                g.ok and g.inliers >= max(res.inliers, best[0].inliers if best else 0)
-                and not self._moved(g.pose, res)
-            ):  # fmt: skip
-                best, state = (g, self._tracked()), (self.px_scale, self._small_box)
-        self._uncertain_pose = held
-        self._at_scale(state[0])
-        self._small_box = state[1]
-        if best is None:
-            return None
-        g, tracked = best
-        self._restore(tracked)
-        g.mode = "relocalise"
-        return g
-
-    _TRACKED = ("keyframe", "track_px", "track_X", "track_land", "_patched")
-
-    def _tracked(self) -> tuple:
-        """What an accepted pose leaves for the next frame (`_accept`), to choose later."""
-        return tuple(getattr(self, k) for k in self._TRACKED)
-
-    def _restore(self, tracked: tuple) -> None:
-        for k, v in zip(self._TRACKED, tracked, strict=True):
-            setattr(self, k, v)
-
-    def _moved(self, pose: Pose, res: FrameRecord) -> bool:
-        """Another hypothesis than `res`, not a refinement of it: `distinct`, and beyond 3
-        of its position sigmas (a far relocalisation can be 10 cm off at 2 sigma) or turned
-        by `distinct_deg`."""
-        d, sigma = pose.distance_to(res.pose), res.sigma_pos_m
-        return bool(
-            (d > self.settings.distinct_m and not d <= 3 * sigma)  # (no sigma: distinct)
-            or pose.angle_to(res.pose) > self.settings.distinct_deg
-        )
-
     def _rivalled(self, kps, desc, tilted: bool, ranked, res: FrameRecord, est) -> bool:
         """Does another place explain the frame about as well? Matching over keyframes of
         two sides loses the features that look alike on both to the ratio test, so a
@@ -392,3 +336,64 @@ class Relocalisation:
             return lost
         res = self._gate(est, len(uv), "relocalise", False, land, (X, uv), unique)
         return res, est, uv, X, kf, land
+
+
+class Polish:
+    """An ok relocalisation measured again as a tracked frame would be (a mixin of
+    Tracker)."""
+
+    def _polished(self, kps, desc, res: FrameRecord) -> FrameRecord | None:
+        """A relocalised pose measured again as a tracked frame is (ORB-SLAM's search by
+        projection), at the tracking radius: the weak-texture orbit's first frame was
+        relocalised 26 mm (2.8 sigma) off with 56 inliers; guided, 62 and 6 mm. A far
+        landmark is also measured in its box, upsampled, as the next tracked frame would
+        be, and the one with more inliers is kept: far tuning seed 19's first frame, 49
+        whole-frame inliers 10 cm (2.2 sigma) off, has 350 there and is 1.4 cm off (the
+        4 m stress orbit's relocalisation after its look-away: 266 in the whole frame, 100
+        in the box). Kept when ok, with at least the relocalisation's inliers, and not
+        moved as far as another hypothesis would be (`_moved`)."""
+        held, kept = self._uncertain_pose, (self.px_scale, self._small_box)
+        best, state = None, kept
+        g = self._guided(kps, desc, res.pose, self.settings.guided_radius_px)
+        if g.ok and g.inliers >= res.inliers and not self._moved(g.pose, res):
+            best, state = (g, self._tracked()), (self.px_scale, self._small_box)
+        box = self._model_box(res.pose, self._gray.shape) if self._gray is not None else None
+        if self._upsamples(box):
+            self._at_scale(1.0)
+            self._small_box = True
+            kps, desc = self._box_features(self._gray, box, self.detector)
+            g = self._guided(kps, desc, res.pose, self.settings.guided_radius_px)
+            if (
+                g.ok and g.inliers >= max(res.inliers, best[0].inliers if best else 0)
+                and not self._moved(g.pose, res)
+            ):  # fmt: skip
+                best, state = (g, self._tracked()), (self.px_scale, self._small_box)
+        self._uncertain_pose = held
+        self._at_scale(state[0])
+        self._small_box = state[1]
+        if best is None:
+            return None
+        g, tracked = best
+        self._restore(tracked)
+        g.mode = "relocalise"
+        return g
+
+    _TRACKED = ("keyframe", "track_px", "track_X", "track_land", "_patched")
+
+    def _tracked(self) -> tuple:
+        """What an accepted pose leaves for the next frame (`_accept`), to choose later."""
+        return tuple(getattr(self, k) for k in self._TRACKED)
+
+    def _restore(self, tracked: tuple) -> None:
+        for k, v in zip(self._TRACKED, tracked, strict=True):
+            setattr(self, k, v)
+
+    def _moved(self, pose: Pose, res: FrameRecord) -> bool:
+        """Another hypothesis than `res`, not a refinement of it: `distinct`, and beyond 3
+        of its position sigmas (a far relocalisation can be 10 cm off at 2 sigma) or turned
+        by `distinct_deg`."""
+        d, sigma = pose.distance_to(res.pose), res.sigma_pos_m
+        return bool(
+            (d > self.settings.distinct_m and not d <= 3 * sigma)  # (no sigma: distinct)
+            or pose.angle_to(res.pose) > self.settings.distinct_deg
+        )

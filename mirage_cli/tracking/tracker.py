@@ -38,7 +38,7 @@ from ..tilt import elevation_deg
 from .flow import FlowTracking, _deviation
 from .gating import PoseGate
 from .patching import PatchPlacement
-from .relocalise import Relocalisation
+from .relocalise import Polish, Relocalisation
 from .schedule import DetectionSchedule
 from .search import SHRINK_MARGIN, GuidedSearch, _median_depth
 from .settings import TrackSettings
@@ -54,7 +54,13 @@ def warm_up() -> None:
 
 
 class Tracker(
-    FlowTracking, DetectionSchedule, GuidedSearch, PatchPlacement, Relocalisation, PoseGate
+    FlowTracking,
+    DetectionSchedule,
+    GuidedSearch,
+    PatchPlacement,
+    Relocalisation,
+    Polish,
+    PoseGate,
 ):
     """Stateful per-frame tracker; feed frames in order with `process(gray)`.
 
