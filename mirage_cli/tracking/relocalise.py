@@ -352,8 +352,8 @@ class Polish:
         4 m stress orbit's relocalisation after its look-away: 266 in the whole frame, 100
         in the box). Kept when ok, with at least the relocalisation's inliers, and not
         moved as far as another hypothesis would be (`_moved`)."""
-        held, kept = self._uncertain_pose, (self.px_scale, self._small_box)
-        best, state = None, kept
+        held = self._uncertain_pose
+        best, state = None, (self.px_scale, self._small_box)  # (the scale to leave)
         g = self._guided(kps, desc, res.pose, self.settings.guided_radius_px)
         if g.ok and g.inliers >= res.inliers and not self._moved(g.pose, res):
             best, state = (g, self._tracked()), (self.px_scale, self._small_box)
