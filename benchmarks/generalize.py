@@ -14,12 +14,15 @@ than 2.5% of the range or 5 deg). "In view": at least 30% of the landmark's surf
 samples project into the image and are not behind the occluder; "out of view": none do.
 Honesty = RMS error / RMS reported 1-sigma over ok frames (pooled over a family's seeds,
 and its worst seed). Each system's rows are repeated for the scenes whose landmark has a
-drum and for those of boxes alone.
+drum and for those of boxes alone. `--systems hinted` runs mirage with the true pose (5 cm
+and 1 deg off) as its hint whenever it holds no pose: what it would track if finding the
+landmark were solved (a diagnostic, not a system).
 
     python benchmarks/generalize.py                        # report seeds, every family
     python benchmarks/generalize.py --seeds tune --count 10 --systems mirage
     python benchmarks/generalize.py --families far --seeds 3,7 --per-seed
     python benchmarks/generalize.py --render-only          # render (cache) the scenes
+    python benchmarks/generalize.py --seeds tune --systems mirage,hinted   # search or track?
 
 Scenes are 150 frames (5 s at 30 fps); rendering one takes ~10-15 s on 2 cores, the
 first full report run ~20 min of rendering; the peers run on the first 10 report seeds
@@ -41,6 +44,7 @@ from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
 
 blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage`
 
+import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
@@ -59,6 +63,7 @@ stress = _stress()
 from mirage_cli import __version__  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.families import FAMILIES  # noqa: E402
+from mirage_cli.pose import Pose  # noqa: E402
 from mirage_cli.runtime import opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
 
@@ -69,6 +74,7 @@ REPORT_SEEDS = range(1000, 1030)
 FPS = 30.0
 IN_VIEW = 0.3
 WRONG_M, WRONG_DEG, WRONG_FAR_SHARE = 0.10, 5.0, 0.025
+SYSTEMS = ("mirage", "plain", "hloc", "hinted")
 
 
 def scene_folder(family: str, seed: int, frames: int, jobs: int) -> Path:
@@ -111,6 +117,39 @@ def honesty(err, sig) -> float:
     return float(np.sqrt(np.mean(err**2)) / np.sqrt(np.mean(sig**2)))
 
 
+HINT_M, HINT_DEG = 0.05, 1.0  # the hinted run's hint: the truth this far off (RMS)
+
+
+class HintedTracker(stress.Tracker):
+    """mirage's tracker given, whenever it holds no pose, the true pose HINT_M / HINT_DEG
+    off as its hint (where the last frame's uncertain pose would say to look): what the
+    tracking would give if finding the landmark were solved, so that a family's lost
+    frames split into the search's and the tracking's."""
+
+    def __init__(self, model, camera, truth, seed: int = 0):
+        super().__init__(model, camera, stress.TrackSettings())
+        self._truth, self._rng = truth, np.random.default_rng(seed)
+
+    def process(self, gray, ahead=()):
+        if self.prev_pose is None and self.hint is None:
+            t = row_pose(self._truth.iloc[self._frame_no + 1])
+            rot = self._rng.normal(size=3) * np.radians(HINT_DEG) / np.sqrt(3)
+            dR = cv2.Rodrigues(rot)[0]
+            C = t.center + self._rng.normal(size=3) * HINT_M / np.sqrt(3)
+            self.hint = Pose.from_center(dR @ t.R.T, C)
+        return super().process(gray, ahead)
+
+
+def run_hinted(frames, model, camera, truth):
+    """`run_mirage` with `HintedTracker`."""
+    tr = HintedTracker(model, camera, truth)
+    held = (stress.Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
+    t0 = time.perf_counter()
+    recs = stress.tracked_records(held, tr, stress.SmoothSettings())
+    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
+    return out, time.perf_counter() - t0
+
+
 def run_scene(folder: Path, systems: list[str]) -> dict[str, dict]:
     camera = Camera.load(folder / "camera_truth.yaml")
     truth = read_pose_csv(folder / "orbit_truth.csv")
@@ -122,7 +161,10 @@ def run_scene(folder: Path, systems: list[str]) -> dict[str, dict]:
     model = stress.get_model(folder / "keyframes", camera)
     out = {}
     for sy in systems:
-        res, sec = stress.SYSTEMS[sy](frames, model, camera)
+        if sy == "hinted":
+            res, sec = run_hinted(frames, model, camera, truth)
+        else:
+            res, sec = stress.SYSTEMS[sy](frames, model, camera)
         out[sy] = score(res, truth, target, recipe["family"] == "far", sec)
         out[sy]["drum"] = recipe["landmark"]["drums"] > 0
     return out
@@ -180,7 +222,7 @@ def main():
     ap.add_argument("--families", default=",".join(FAMILIES), help=f"of {', '.join(FAMILIES)}")
     ap.add_argument("--seeds", default="report", help="report, tune, or e.g. 0-9,15")
     ap.add_argument("--count", type=int, help="only the first COUNT of those seeds")
-    ap.add_argument("--systems", default="mirage,plain,hloc", help="of mirage, plain, hloc")
+    ap.add_argument("--systems", default="mirage,plain,hloc", help=f"of {', '.join(SYSTEMS)}")
     ap.add_argument("--peer-seeds", type=int, default=10, help="seeds per family for peers")
     ap.add_argument("--frames", type=int, default=150, help="frames per scene (30 fps)")
     ap.add_argument("--jobs", type=int, default=2, help="render processes (first run only)")
@@ -189,9 +231,7 @@ def main():
     args = ap.parse_args()
     fams = [f.strip() for f in args.families.split(",") if f.strip()]
     systems = [s.strip() for s in args.systems.split(",") if s.strip()]
-    bad = [f for f in fams if f not in FAMILIES] + [
-        s for s in systems if s not in ("mirage", "plain", "hloc")
-    ]
+    bad = [f for f in fams if f not in FAMILIES] + [s for s in systems if s not in SYSTEMS]
     if bad:
         ap.error(f"unknown family/system {', '.join(bad)}")
     seeds = parse_seeds(args.seeds, args.count)
@@ -210,7 +250,7 @@ def main():
     results: dict[str, dict[str, dict[int, dict]]] = {f: {} for f in fams}
     peer_seeds = set(seeds[: args.peer_seeds])
     for (fam, seed), folder in folders.items():
-        run = [s for s in systems if s == "mirage" or seed in peer_seeds]
+        run = [s for s in systems if s in ("mirage", "hinted") or seed in peer_seeds]
         per = run_scene(folder, run)
         for sy, r in per.items():
             results[fam].setdefault(sy, {})[seed] = r
@@ -230,7 +270,7 @@ def main():
         "| worst seed pos / rot | fps median |"
     )
     lines = [header, "|" + "---|" * 12]
-    labels = stress.SYSTEM_LABELS
+    labels = {**stress.SYSTEM_LABELS, "hinted": "mirage, hinted when lost"}
     for fam in fams:
         for sy in systems:
             per = results[fam].get(sy, {})
