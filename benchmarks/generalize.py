@@ -44,7 +44,6 @@ from mirage_cli.runtime import blas_in_calling_thread  # noqa: E402
 
 blas_in_calling_thread()  # before numpy loads: its BLAS in the calling thread, as `mirage`
 
-import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 
@@ -63,7 +62,7 @@ stress = _stress()
 from mirage_cli import __version__  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.families import FAMILIES  # noqa: E402
-from mirage_cli.pose import Pose  # noqa: E402
+from mirage_cli.pose import Pose, rodrigues  # noqa: E402
 from mirage_cli.runtime import opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
 
@@ -133,21 +132,10 @@ class HintedTracker(stress.Tracker):
     def process(self, gray, ahead=()):
         if self.prev_pose is None and self.hint is None:
             t = row_pose(self._truth.iloc[self._frame_no + 1])
-            rot = self._rng.normal(size=3) * np.radians(HINT_DEG) / np.sqrt(3)
-            dR = cv2.Rodrigues(rot)[0]
+            turn = rodrigues(self._rng.normal(size=3) * np.radians(HINT_DEG) / np.sqrt(3))
             C = t.center + self._rng.normal(size=3) * HINT_M / np.sqrt(3)
-            self.hint = Pose.from_center(dR @ t.R.T, C)
+            self.hint = Pose.from_center(turn @ t.R_wc, C)
         return super().process(gray, ahead)
-
-
-def run_hinted(frames, model, camera, truth):
-    """`run_mirage` with `HintedTracker`."""
-    tr = HintedTracker(model, camera, truth)
-    held = (stress.Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
-    t0 = time.perf_counter()
-    recs = stress.tracked_records(held, tr, stress.SmoothSettings())
-    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
-    return out, time.perf_counter() - t0
 
 
 def run_scene(folder: Path, systems: list[str]) -> dict[str, dict]:
@@ -162,7 +150,8 @@ def run_scene(folder: Path, systems: list[str]) -> dict[str, dict]:
     out = {}
     for sy in systems:
         if sy == "hinted":
-            res, sec = run_hinted(frames, model, camera, truth)
+            hinted = HintedTracker(model, camera, truth)
+            res, sec = stress.run_mirage(frames, model, camera, tracker=hinted)
         else:
             res, sec = stress.SYSTEMS[sy](frames, model, camera)
         out[sy] = score(res, truth, target, recipe["family"] == "far", sec)
@@ -194,8 +183,8 @@ def by_landmark(label: str, family: str, per_seed: dict[int, dict]) -> list[str]
     """The rows again for the scenes whose landmark has a drum and for those of boxes
     alone, when there are both: a drum's print wraps a curved face that far views see
     40-60 px wide, so the two kinds fail differently and a family's median hides which."""
-    drum = {s: r for s, r in per_seed.items() if r.get("drum")}
-    boxes = {s: r for s, r in per_seed.items() if not r.get("drum")}
+    drum = {s: r for s, r in per_seed.items() if r["drum"]}
+    boxes = {s: r for s, r in per_seed.items() if not r["drum"]}
     if not drum or not boxes:
         return []
     return [summarise(label + ", a drum", family, drum),

@@ -194,10 +194,10 @@ def get_model(keyframes: Path, camera: Camera) -> LandmarkModel:
 # --------------------------------------------------------------------------------------
 # systems: each returns per frame (pose or None, sigma_pos_m, sigma_rot_deg) and seconds
 # --------------------------------------------------------------------------------------
-def run_mirage(frames, model, camera, lag=SmoothSettings.lag):
+def run_mirage(frames, model, camera, lag=SmoothSettings.lag, tracker=None):
     """`mirage track`'s loop (the tracker, then the smoother) with its default settings,
-    frames in memory."""
-    tr = Tracker(model, camera, TrackSettings())
+    frames in memory (`tracker`: one made by the caller)."""
+    tr = Tracker(model, camera, TrackSettings()) if tracker is None else tracker
     held = (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
     t0 = time.perf_counter()
     recs = tracked_records(held, tr, SmoothSettings(lag=lag))
