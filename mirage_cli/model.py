@@ -629,14 +629,15 @@ def ground_points(
 
 
 def periodic_floor(points: np.ndarray, twins: np.ndarray, min_off: int = 100) -> np.ndarray:
-    """Per 3D point: on a floor whose texture repeats, even one that holds more than 90%
-    of the model's points (`ground_points` leaves those alone: a flat landmark looks the
-    same). When most of the lowest layer's points have descriptor twins, every point of it
+    """Per 3D point: on a floor whose texture repeats, even one that holds more than 90% of the
+    model's points (`ground_points` left those alone before stop 54, and a model's stored
+    ground table may still come from then; a fresh table already holds every point this
+    flags). When most of the lowest layer's points have descriptor twins, every point of it
     has a copy one period away, found or not (a copy seen from another distance describes
-    differently), so none may decide a relocalisation: tuning seed above 7, a small
-    landmark on grass repeating every 0.85 m (11 308 of 11 743 points on the floor, 70%
-    twins), was relocalised a period away with 51 floor inliers, 12 frames 85 cm off. The
-    landmark needs `min_off` points of its own above the layer."""
+    differently), so none may decide a relocalisation: tuning seed above 7, a small landmark
+    on grass repeating every 0.85 m (11 308 of 11 743 points on the floor, 70% twins), was
+    relocalised a period away with 51 floor inliers, 12 frames 85 cm off. The landmark needs
+    `min_off` points of its own above the layer."""
     layer = ground_points(points, max_share=1.0)
     if (~layer).sum() < min_off or not layer.any() or twins[layer].mean() < 0.5:
         return np.zeros(len(layer), bool)
