@@ -23,6 +23,7 @@ landmark were solved (a diagnostic, not a system).
     python benchmarks/generalize.py --families far --seeds 3,7 --per-seed
     python benchmarks/generalize.py --render-only          # render (cache) the scenes
     python benchmarks/generalize.py --seeds tune --systems mirage,hinted   # search or track?
+    python benchmarks/generalize.py --families near --seeds 0-47 --set max_sigma_range=0.02
 
 Scenes are 150 frames (5 s at 30 fps); rendering one takes ~10-15 s on 2 cores, the
 first full report run ~20 min of rendering; the peers run on the first 10 report seeds
@@ -32,6 +33,7 @@ of each family (--peer-seeds) so that a full run stays under an hour on 2 cores.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import sys
 import time
@@ -125,8 +127,8 @@ class HintedTracker(stress.Tracker):
     tracking would give if finding the landmark were solved, so that a family's lost
     frames split into the search's and the tracking's."""
 
-    def __init__(self, model, camera, truth, seed: int = 0):
-        super().__init__(model, camera, stress.TrackSettings())
+    def __init__(self, model, camera, truth, settings, seed: int = 0):
+        super().__init__(model, camera, settings)
         self._truth, self._rng = truth, np.random.default_rng(seed)
 
     def process(self, gray, ahead=()):
@@ -138,7 +140,8 @@ class HintedTracker(stress.Tracker):
         return super().process(gray, ahead)
 
 
-def run_scene(folder: Path, systems: list[str]) -> dict[str, dict]:
+def run_scene(folder: Path, systems: list[str], overrides: dict | None = None) -> dict[str, dict]:
+    """Each system on one scene; `overrides`: mirage's TrackSettings fields set (`--set`)."""
     camera = Camera.load(folder / "camera_truth.yaml")
     truth = read_pose_csv(folder / "orbit_truth.csv")
     recipe = yaml.safe_load((folder / "scene.yaml").read_text())
@@ -147,11 +150,15 @@ def run_scene(folder: Path, systems: list[str]) -> dict[str, dict]:
     )
     frames, _ = stress.load_frames(folder / "orbit.mp4")
     model = stress.get_model(folder / "keyframes", camera)
+    settings = dataclasses.replace(stress.TrackSettings(), **(overrides or {}))
     out = {}
     for sy in systems:
         if sy == "hinted":
-            hinted = HintedTracker(model, camera, truth)
+            hinted = HintedTracker(model, camera, truth, settings)
             res, sec = stress.run_mirage(frames, model, camera, tracker=hinted)
+        elif sy == "mirage" and overrides:
+            tracker = stress.Tracker(model, camera, settings)
+            res, sec = stress.run_mirage(frames, model, camera, tracker=tracker)
         else:
             res, sec = stress.SYSTEMS[sy](frames, model, camera)
         out[sy] = score(res, truth, target, recipe["family"] == "far", sec)
@@ -206,6 +213,27 @@ def parse_seeds(text: str, count: int | None) -> list[int]:
     return seeds[:count] if count else seeds
 
 
+def parse_overrides(items: list[str]) -> dict:
+    """`--set NAME=VALUE` -> {NAME: VALUE} for TrackSettings' plain fields, VALUE read as
+    the field's default's type (an experiment run as one command, its figures reproducible)."""
+    plain = {
+        f.name: type(f.default)
+        for f in dataclasses.fields(stress.TrackSettings)
+        if isinstance(f.default, (bool, int, float, str))
+    }
+    out = {}
+    for item in items:
+        name, eq, value = item.partition("=")
+        if not eq or name not in plain:
+            raise ValueError(f"--set {item}: not NAME=VALUE of a TrackSettings field")
+        kind = plain[name]
+        try:
+            out[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+        except ValueError:
+            raise ValueError(f"--set {item}: {value!r} is not a {kind.__name__}") from None
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--families", default=",".join(FAMILIES), help=f"of {', '.join(FAMILIES)}")
@@ -217,7 +245,15 @@ def main():
     ap.add_argument("--jobs", type=int, default=2, help="render processes (first run only)")
     ap.add_argument("--render-only", action="store_true", help="render (cache) the scenes, stop")
     ap.add_argument("--per-seed", action="store_true", help="also print a row per seed")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="NAME=VALUE",
+        help="a TrackSettings field for mirage (repeatable), e.g. max_sigma_range=0.02",
+    )  # fmt: skip
     args = ap.parse_args()
+    try:
+        overrides = parse_overrides(args.set)
+    except ValueError as e:
+        ap.error(str(e))
     fams = [f.strip() for f in args.families.split(",") if f.strip()]
     systems = [s.strip() for s in args.systems.split(",") if s.strip()]
     bad = [f for f in fams if f not in FAMILIES] + [s for s in systems if s not in SYSTEMS]
@@ -240,7 +276,7 @@ def main():
     peer_seeds = set(seeds[: args.peer_seeds])
     for (fam, seed), folder in folders.items():
         run = [s for s in systems if s in ("mirage", "hinted") or seed in peer_seeds]
-        per = run_scene(folder, run)
+        per = run_scene(folder, run, overrides)
         for sy, r in per.items():
             results[fam].setdefault(sy, {})[seed] = r
             if args.per_seed:
@@ -260,6 +296,8 @@ def main():
     )
     lines = [header, "|" + "---|" * 12]
     labels = {**stress.SYSTEM_LABELS, "hinted": "mirage, hinted when lost"}
+    if overrides:
+        labels["mirage"] = "mirage (--set)"
     for fam in fams:
         for sy in systems:
             per = results[fam].get(sy, {})
@@ -274,6 +312,7 @@ def main():
     print(
         f"\nmirage-cli {__version__}; seeds {args.seeds}"
         f"{f' (first {args.count})' if args.count else ''}: {seeds[0]}-{seeds[-1]}; "
+        f"{f'settings {overrides}; ' if overrides else ''}"
         f"{args.frames} frames per scene at 30 fps, 640x480; peers on the first "
         f"{args.peer_seeds} seeds of each family; {time.perf_counter() - t_start:.0f} s"
     )

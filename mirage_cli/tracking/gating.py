@@ -194,7 +194,8 @@ class PoseGate:
         max_pos = self.settings.max_sigma_pos_m
         if points is not None:  # relative to the range: the inliers' median depth
             depth = float(np.median(est.pose.transform(points[0][est.inliers])[:, 2]))
-            max_pos = min(max_pos, self.settings.max_sigma_range * depth)
+            ranged = max(self.settings.max_sigma_range * depth, self.settings.sigma_range_floor_m)
+            max_pos = min(max_pos, ranged)
         res.measurement = Measurement(
             est.pose, cov_res, cov_model, max_sigma_pos_m=max_pos,
             max_sigma_rot_deg=self.settings.max_sigma_rot_deg,

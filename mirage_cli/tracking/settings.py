@@ -89,7 +89,8 @@ class TrackSettings:
     model_error_points: float = 300.0  # model/keypoint errors average like this many points
     max_sigma_pos_m: float = 0.10  # a larger 1-sigma uncertainty is `uncertain`, not ok
     max_sigma_rot_deg: float = 1.5
-    max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance
+    max_sigma_range: float = 0.01  # ...or larger than this share of the landmark's distance,
+    sigma_range_floor_m: float = 0.0  # which is never below this (a near landmark)
 
     def distinct(self, a, b) -> bool:
         """Two poses are different hypotheses (`distinct_m` apart or `distinct_deg` turned)."""
