@@ -213,6 +213,13 @@ def parse_seeds(text: str, count: int | None) -> list[int]:
     return seeds[:count] if count else seeds
 
 
+def _as_bool(text: str) -> bool:
+    words = {"1": True, "true": True, "yes": True, "0": False, "false": False, "no": False}
+    if text.lower() not in words:
+        raise ValueError(text)
+    return words[text.lower()]
+
+
 def parse_overrides(items: list[str]) -> dict:
     """`--set NAME=VALUE` -> {NAME: VALUE} for TrackSettings' plain fields, VALUE read as
     the field's default's type (an experiment run as one command, its figures reproducible)."""
@@ -228,9 +235,9 @@ def parse_overrides(items: list[str]) -> dict:
             raise ValueError(f"--set {item}: not NAME=VALUE of a TrackSettings field")
         kind = plain[name]
         try:
-            out[name] = value.lower() in ("1", "true", "yes") if kind is bool else kind(value)
+            out[name] = _as_bool(value) if kind is bool else kind(value)
         except ValueError:
-            raise ValueError(f"--set {item}: {value!r} is not a {kind.__name__}") from None
+            raise ValueError(f"--set {item}: {value!r} is not of type {kind.__name__}") from None
     return out
 
 
