@@ -241,7 +241,9 @@ def parse_overrides(items: list[str]) -> dict:
     return out
 
 
-def main():
+def parse_args() -> tuple[argparse.Namespace, dict]:
+    """The command line (families and systems as lists), and its `--set` overrides; a
+    one-line error when any is bad."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--families", default=",".join(FAMILIES), help=f"of {', '.join(FAMILIES)}")
     ap.add_argument("--seeds", default="report", help="report, tune, or e.g. 0-9,15")
@@ -261,11 +263,18 @@ def main():
         overrides = parse_overrides(args.set)
     except ValueError as e:
         ap.error(str(e))
-    fams = [f.strip() for f in args.families.split(",") if f.strip()]
-    systems = [s.strip() for s in args.systems.split(",") if s.strip()]
-    bad = [f for f in fams if f not in FAMILIES] + [s for s in systems if s not in SYSTEMS]
+    args.families = [f.strip() for f in args.families.split(",") if f.strip()]
+    args.systems = [s.strip() for s in args.systems.split(",") if s.strip()]
+    bad = [f for f in args.families if f not in FAMILIES]
+    bad += [s for s in args.systems if s not in SYSTEMS]
     if bad:
         ap.error(f"unknown family/system {', '.join(bad)}")
+    return args, overrides
+
+
+def main():
+    args, overrides = parse_args()
+    fams, systems = args.families, args.systems
     seeds = parse_seeds(args.seeds, args.count)
     if "hloc" in systems:
         try:
