@@ -156,7 +156,7 @@ def run_scene(folder: Path, systems: list[str], overrides: dict | None = None) -
         if sy == "hinted":
             hinted = HintedTracker(model, camera, truth, settings)
             res, sec = stress.run_mirage(frames, model, camera, tracker=hinted)
-        elif sy == "mirage" and overrides:
+        elif sy == "mirage":  # (without overrides: the defaults, as stress.run_mirage's)
             tracker = stress.Tracker(model, camera, settings)
             res, sec = stress.run_mirage(frames, model, camera, tracker=tracker)
         else:
