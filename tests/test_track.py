@@ -927,6 +927,36 @@ def test_far_landmark_sigma_covers_the_rotation_translation_trade_off():
     assert np.median(side / pe) > 0.7
 
 
+def test_a_patched_pose_is_at_least_patch_error_floor_times_as_uncertain(sample_model):
+    """Patches are placed within a few pixels of the pose they measure, from templates
+    warped by it, so their residuals understate their error (far tuning seeds: patched
+    poses 1.25-1.85x as far off as their residuals' sigma at 30-200 points). Whatever the
+    count, a patched pose's own covariance is at least `patch_error_floor` times what its
+    residuals show, and beyond `patch_error_points` the count's share (n / k) when larger;
+    keypoint poses are as their residuals show."""
+    from mirage_cli.pose import look_at
+    from mirage_cli.solver import RefineOptions, solve_pose
+    from mirage_cli.tracking import Tracker, TrackSettings
+
+    model = LandmarkModel.load(sample_model)
+    cam = Camera.load(SAMPLE / "camera_truth.yaml")
+    s = TrackSettings()
+    tracker = Tracker(model, cam, s)
+    rng = np.random.default_rng(3)
+    truth = look_at([4.0, 0.3, 0.6], [0.0, 0.0, 0.15])
+    for n in (30, 120, 400):
+        X = rng.uniform([-0.15, -0.15, 0.0], [0.15, 0.15, 0.3], (n, 3))
+        uv = cam.project(X, truth) + rng.normal(0, 0.3, (n, 2))
+        est = solve_pose(X, uv, cam, truth, refine=RefineOptions(reject_px=2.0, huber_px=0.5))
+        k = int(est.inliers.sum())
+        plain, shared = tracker._covariances(est, k, (X, uv), patched=False)
+        patched, shared_p = tracker._covariances(est, k, (X, uv), patched=True)
+        factor = max(s.patch_error_floor, k / s.patch_error_points)
+        assert factor >= 3.0
+        np.testing.assert_allclose(patched, plain * factor, rtol=1e-9)
+        np.testing.assert_allclose(shared_p, shared)
+
+
 def test_a_sharper_camera_than_the_models_flows_as_often(sample_model):
     """The sample orbit through a camera 3x sharper than the model's (1920x1440, the
     frames magnified): a model point 0.5 px off in its keyframes is about 1.5 px off here,

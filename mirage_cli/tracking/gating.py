@@ -68,9 +68,10 @@ class PoseGate:
             est, n, self.camera, points, self.settings.refine.huber_px, self.model_rms_px,
             self.settings.model_error_points, self.model_error_scale,
         )  # fmt: skip
-        k = self.settings.patch_error_points
-        if patched and n > k:  # patch errors of one face's points err alike
-            res = res * (n / k)
+        if patched:  # patch errors of one face's points err alike, and each patch is
+            # placed near the pose it measures, so its residuals understate its error
+            k = self.settings.patch_error_points
+            res = res * max(self.settings.patch_error_floor, n / k)
         return res, shared
 
     def _significant(

@@ -53,15 +53,19 @@ from ..solver import sigmas
 @dataclass
 class SmoothSettings:
     lag: int = 15  # frames before and after the output frame
-    accel_m_s2: float = 5.0  # white-noise acceleration of the camera centre (1 sigma)
-    ang_accel_deg_s2: float = 60.0  # ... and of its rotation
+    accel_m_s2: float = 3.5  # white-noise acceleration of the camera centre (1 sigma)
+    ang_accel_deg_s2: float = 30.0  # ... and of its rotation: a far pose's error is mostly
+    # a turn traded against a shift, which a camera that turns smoothly pins (far tuning
+    # seeds 10-99: 60 -> 30 deg/s^2 with `correlated` 0.15, 16 -> 11 wrong poses, 58.0 ->
+    # 59.4% of in-view frames ok); a faster turn fails `max_prior_excess` and stays as tracked
     max_gap: int = 3  # more frames in a row without a pose split the trajectory
     min_side: int = 3  # fewer poses than this before or after a frame: it stays as tracked
     outlier_chi2: float = 22.46  # chi-square, 6 dof, p = 0.999
     min_run: float = 3.0  # a pose counts as at most 1/min_run of a measurement: far
     # detections in a row err alike (see the module's docstring)
-    correlated: float = 0.1  # share of a frame's own covariance its neighbours share,
-    # not averaged down (random far scenes, tuning seeds: 0.1 ends 3.6-sigma runs)
+    correlated: float = 0.15  # share of a frame's own covariance its neighbours share,
+    # not averaged down (random far scenes, tuning seeds: 0.1 ends 3.6-sigma runs; 0.15
+    # with the tighter turn prior above)
     max_prior_excess: float = 25.0  # a window whose motion costs the prior more than this
     # per degree of freedom (5 sigma on average) is not what it describes: as tracked
     fps: float = 30.0  # frame rate when the records carry no times
