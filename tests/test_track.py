@@ -932,8 +932,10 @@ def test_a_patched_pose_is_at_least_patch_error_floor_times_as_uncertain(sample_
     warped by it, so their residuals understate their error (far tuning seeds: patched
     poses 1.25-1.85x as far off as their residuals' sigma at 30-200 points). Whatever the
     count, a patched pose's own covariance is at least `patch_error_floor` times what its
-    residuals show, and beyond `patch_error_points` the count's share (n / k) when larger;
-    keypoint poses are as their residuals show."""
+    residuals show where the view is shrunk `patch_floor_ratio` or more from the nearest
+    keyframe's (from the keyframes' own distance only the count's share); beyond
+    `patch_error_points` the count's share (n / k) when larger; keypoint poses are as
+    their residuals show."""
     from mirage_cli.pose import look_at
     from mirage_cli.solver import RefineOptions, solve_pose
     from mirage_cli.tracking import Tracker, TrackSettings
@@ -943,18 +945,22 @@ def test_a_patched_pose_is_at_least_patch_error_floor_times_as_uncertain(sample_
     s = TrackSettings()
     tracker = Tracker(model, cam, s)
     rng = np.random.default_rng(3)
-    truth = look_at([4.0, 0.3, 0.6], [0.0, 0.0, 0.15])
-    for n in (30, 120, 400):
-        X = rng.uniform([-0.15, -0.15, 0.0], [0.15, 0.15, 0.3], (n, 3))
-        uv = cam.project(X, truth) + rng.normal(0, 0.3, (n, 2))
-        est = solve_pose(X, uv, cam, truth, refine=RefineOptions(reject_px=2.0, huber_px=0.5))
-        k = int(est.inliers.sum())
-        plain, shared = tracker._covariances(est, k, (X, uv), patched=False)
-        patched, shared_p = tracker._covariances(est, k, (X, uv), patched=True)
-        factor = max(s.patch_error_floor, k / s.patch_error_points)
-        assert factor >= 3.0
-        np.testing.assert_allclose(patched, plain * factor, rtol=1e-9)
-        np.testing.assert_allclose(shared_p, shared)
+    kf = model.keyframes[0].pose
+    near = look_at(kf.center, [0.0, 0.0, 0.15])  # the keyframe's distance, as from above
+    far = look_at(LANDMARK_TARGET + 3.0 * (kf.center - LANDMARK_TARGET), LANDMARK_TARGET)
+    for truth, floor in ((far, s.patch_error_floor), (near, 1.0)):
+        for n in (30, 120, 400):
+            X = LANDMARK_TARGET + rng.uniform(-0.15, 0.15, (n, 3))
+            uv = cam.project(X, truth) + rng.normal(0, 0.3, (n, 2))
+            refine = RefineOptions(reject_px=2.0, huber_px=0.5)
+            est = solve_pose(X, uv, cam, truth, refine=refine)
+            k = int(est.inliers.sum())
+            plain, shared = tracker._covariances(est, k, (X, uv), patched=False)
+            patched, shared_p = tracker._covariances(est, k, (X, uv), patched=True)
+            factor = max(floor, k / s.patch_error_points, 1.0)
+            np.testing.assert_allclose(patched, plain * factor, rtol=1e-9)
+            np.testing.assert_allclose(shared_p, shared)
+    assert s.patch_error_floor >= 3.0
 
 
 def test_a_sharper_camera_than_the_models_flows_as_often(sample_model):

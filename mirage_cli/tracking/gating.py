@@ -68,11 +68,29 @@ class PoseGate:
             est, n, self.camera, points, self.settings.refine.huber_px, self.model_rms_px,
             self.settings.model_error_points, self.model_error_scale,
         )  # fmt: skip
-        if patched:  # patch errors of one face's points err alike, and each patch is
-            # placed near the pose it measures, so its residuals understate its error
+        if patched:  # patch errors of one face's points err alike
             k = self.settings.patch_error_points
-            res = res * max(self.settings.patch_error_floor, n / k)
+            floor = self.settings.patch_error_floor if self._shrunk_view(est, points) else 1.0
+            res = res * max(floor, n / k)
         return res, shared
+
+    def _shrunk_view(self, est: PoseEstimate, points) -> bool:
+        """Does the frame see the inliers at most 1 / `patch_floor_ratio` of their size in
+        the nearest keyframe? There each patch is a template shrunk from the keyframe,
+        placed within a few pixels of the pose it measures in a small, blurred view, and
+        its residuals understate its error (`patch_error_floor`); from nearly the
+        keyframes' distance (views from above) they do not (above tuning seeds: honesty
+        0.88 without the floor)."""
+        if points is None or not est.success or not est.inliers.any():
+            return False
+        kf = self.model.nearest_keyframes(est.pose, 1)
+        if not kf:
+            return False
+        X = points[0][est.inliers]
+        d_frame = np.median(np.linalg.norm(X - est.pose.center, axis=1))
+        d_kf = np.median(np.linalg.norm(X - self.model.keyframes[kf[0]].pose.center, axis=1))
+        ratio = (d_frame / self.camera.fx) / (d_kf / self.model.camera.fx)
+        return bool(ratio >= self.settings.patch_floor_ratio)
 
     def _significant(
         self, est: PoseEstimate, n: int, mode: str, points, voting, radius_px=None
