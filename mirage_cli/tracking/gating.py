@@ -89,8 +89,7 @@ class PoseGate:
         X = points[0][est.inliers]
         d_frame = np.median(np.linalg.norm(X - est.pose.center, axis=1))
         d_kf = np.median(np.linalg.norm(X - self.model.keyframes[kf[0]].pose.center, axis=1))
-        ratio = (d_frame / self.camera.fx) / (d_kf / self.model.camera.fx)
-        return bool(ratio >= self.settings.patch_floor_ratio)
+        return bool(d_frame >= self.settings.patch_floor_ratio * self._focal_ratio * d_kf)
 
     def _significant(
         self, est: PoseEstimate, n: int, mode: str, points, voting, radius_px=None
