@@ -70,26 +70,20 @@ class PoseGate:
         )  # fmt: skip
         if patched:  # patch errors of one face's points err alike
             k = self.settings.patch_error_points
-            floor = self.settings.patch_error_floor if self._shrunk_view(est, points) else 1.0
+            floor = self.settings.patch_error_floor if self._shrunk_view(est) else 1.0
             res = res * max(floor, n / k)
         return res, shared
 
-    def _shrunk_view(self, est: PoseEstimate, points) -> bool:
-        """Does the frame see the inliers at most 1 / `patch_floor_ratio` of their size in
-        the nearest keyframe? There each patch is a template shrunk from the keyframe,
-        placed within a few pixels of the pose it measures in a small, blurred view, and
-        its residuals understate its error (`patch_error_floor`); from nearly the
+    def _shrunk_view(self, est: PoseEstimate) -> bool:
+        """Does the frame show the landmark at most 1 / `patch_floor_ratio` of its size in
+        the nearest keyframe (`_view_scale`)? There each patch is a template shrunk from the
+        keyframe, placed within a few pixels of the pose it measures in a small, blurred
+        view, and its residuals understate its error (`patch_error_floor`); from nearly the
         keyframes' distance (views from above) they do not (above tuning seeds: honesty
         0.88 without the floor)."""
-        if points is None or not est.success or not est.inliers.any():
+        if not est.success:
             return False
-        kf = self.model.nearest_keyframes(est.pose, 1)
-        if not kf:
-            return False
-        X = points[0][est.inliers]
-        d_frame = np.median(np.linalg.norm(X - est.pose.center, axis=1))
-        d_kf = np.median(np.linalg.norm(X - self.model.keyframes[kf[0]].pose.center, axis=1))
-        return bool(d_frame >= self.settings.patch_floor_ratio * self._focal_ratio * d_kf)
+        return bool(self._view_scale(est.pose) * self.settings.patch_floor_ratio <= 1.0)
 
     def _significant(
         self, est: PoseEstimate, n: int, mode: str, points, voting, radius_px=None

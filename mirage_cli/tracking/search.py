@@ -49,15 +49,20 @@ class GuidedSearch:
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
         if x1 - x0 < 32 or y1 - y0 < 32 or (x1 - x0) * (y1 - y0) > 0.7 * w * h:
             return None
-        shrink = 1.0
-        if len(self._kf_depth):
-            kf = self.model.nearest_keyframes(pred, 1)[0]  # its points, then and now
-            depth = _median_depth(pred, self._kf_points[kf])
-            larger = self._focal_ratio * self._kf_depth[kf] / depth if depth > 0 else 1.0
-            shrink = (
-                round(larger / SHRINK_MARGIN, 2) if larger >= self.settings.shrink_above else 1.0
-            )
+        larger = self._view_scale(pred)
+        shrink = round(larger / SHRINK_MARGIN, 2) if larger >= self.settings.shrink_above else 1.0
         return int(x0), int(y0), int(x1), int(y1), shrink
+
+    def _view_scale(self, pose: Pose) -> float:
+        """How many times larger a frame taken from `pose` shows the landmark than its
+        nearest keyframe did: that keyframe's points, then and now, and the focal lengths
+        (a model from one camera may track another's video). 1 when it cannot tell. Both
+        the detection box's shrink and the patch floor (`PoseGate._shrunk_view`) ask."""
+        kf = self.model.nearest_keyframes(pose, 1) if len(self._kf_depth) else []
+        if not kf:
+            return 1.0
+        depth = _median_depth(pose, self._kf_points[kf[0]])
+        return self._focal_ratio * self._kf_depth[kf[0]] / depth if depth > 0 else 1.0
 
     def _guided(self, kps, desc, pred: Pose, radius: float | None = None) -> FrameRecord:
         """Tracking: match near the predicted projections of the nearby keyframes' points.
