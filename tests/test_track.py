@@ -1052,3 +1052,56 @@ def test_the_kernels_load_early_and_a_failure_there_is_not_lost(monkeypatch):
     with pytest.raises(RuntimeError, match="could not link"):
         pipeline.warm_up_solver()
     assert not pipeline._early
+
+
+def test_keypoints_the_patches_dispute_cover_the_gap_in_their_covariance(sample_model):
+    """A far frame whose few keypoints claim a pose to a few millimetres while the
+    keyframe patches' many points put the camera 10 cm away (far tuning seeds: keypoint
+    poses of 13-33 inliers 6-7% of the range off at 0.7-0.9% sigma): the keypoints keep
+    the frame (their sigma is smaller), but one of the two is wrong, so their covariance
+    must take in the gap (`_patch_verdict`), and the gate calls the frame uncertain.
+    Without the dispute the same pose is ok; patches that agree raise none."""
+    from mirage_cli.pose import look_at
+    from mirage_cli.solver import RefineOptions, sigmas, solve_pose
+    from mirage_cli.tracking import Tracker, TrackSettings
+    from mirage_cli.tracking.patching import pose_gap
+
+    model = LandmarkModel.load(sample_model)
+    cam = Camera.load(SAMPLE / "camera_truth.yaml")
+    s = TrackSettings()
+    tracker = Tracker(model, cam, s)
+    rng = np.random.default_rng(5)
+    kf = model.keyframes[0].pose
+    truth = look_at(LANDMARK_TARGET + 2.5 * (kf.center - LANDMARK_TARGET), LANDMARK_TARGET)
+    side = np.cross(truth.R[2], [0.0, 0.0, 1.0])
+    off = look_at(truth.center + 0.10 * side / np.linalg.norm(side), LANDMARK_TARGET)
+    refine = RefineOptions(reject_px=2.0, huber_px=0.5)
+
+    def measured(pose, n, noise):
+        X = LANDMARK_TARGET + rng.uniform(-0.2, 0.2, (n, 3))
+        uv = cam.project(X, pose) + rng.normal(0, noise, (n, 2))
+        return solve_pose(X, uv, cam, pose, refine=refine), X, uv
+
+    kp, Xk, uvk = measured(off, 40, 0.05)
+    for patch_pose, disputed in ((truth, True), (off, False)):
+        est, Xp, uvp = measured(patch_pose, 200, 0.5)
+        better, dispute = tracker._patch_verdict(kp, (Xk, uvk), (est, uvp, Xp, 0, None))
+        assert not better
+        assert (dispute is not None) == disputed
+    gap = pose_gap(kp.pose, truth)
+    assert np.linalg.norm(gap[3:]) == pytest.approx(0.10, rel=0.2)
+    plain = tracker._gate(kp, 40, "detect", False, None, (Xk, uvk))
+    held = tracker._gate(kp, 40, "detect", False, None, (Xk, uvk), dispute=np.outer(gap, gap))
+    assert plain.status == Status.OK and plain.sigma_pos_m < 0.02
+    assert held.status == Status.UNCERTAIN and held.sigma_pos_m >= 0.09
+    assert sigmas(held.measurement.cov)[0] >= 0.09  # what the smoother is given, too
+
+
+def test_pose_gap_is_the_solvers_left_perturbation():
+    from mirage_cli.pose import Pose, rodrigues
+    from mirage_cli.tracking.patching import pose_gap
+
+    a = Pose.from_rvec_tvec([0.3, -0.2, 0.1], [0.1, 0.2, 2.0])
+    w, v = np.array([0.01, -0.02, 0.005]), np.array([0.03, -0.01, 0.02])
+    b = Pose(rodrigues(w) @ a.R, rodrigues(w) @ a.t + v)
+    np.testing.assert_allclose(pose_gap(a, b), np.concatenate([w, v]), atol=1e-12)

@@ -63,7 +63,11 @@ class PoseGate:
 
     _kf_rolls: np.ndarray | None = None  # the keyframes' rolls (`_implausible`), when asked
 
-    def _covariances(self, est: PoseEstimate, n: int, points=None, patched: bool = False):
+    def _covariances(
+        self, est: PoseEstimate, n: int, points=None, patched: bool = False, dispute=None
+    ):
+        """The pose's own and the model's covariance; `dispute`, a covariance the pose's own
+        must also cover (`_patch_verdict`)."""
         res, shared = frame_covariances(
             est, n, self.camera, points, self.settings.refine.huber_px, self.model_rms_px,
             self.settings.model_error_points, self.model_error_scale,
@@ -72,7 +76,7 @@ class PoseGate:
             k = self.settings.patch_error_points
             floor = self.settings.patch_error_floor if self._shrunk_view(est) else 1.0
             res = res * max(floor, n / k)
-        return res, shared
+        return (res if dispute is None else res + dispute), shared
 
     def _shrunk_view(self, est: PoseEstimate) -> bool:
         """Does the frame show the landmark at most 1 / `patch_floor_ratio` of its size in
@@ -153,6 +157,7 @@ class PoseGate:
         points: tuple[np.ndarray, np.ndarray] | None = None,
         voting: np.ndarray | None = None,
         radius_px: float | None = None,
+        dispute: np.ndarray | None = None,
     ) -> FrameRecord:
         """ok only with enough consistent inliers, enough of them on the landmark itself
         (`on_landmark`, per match; None: all are), a small residual, a plausible motion and
@@ -175,7 +180,7 @@ class PoseGate:
         if not est.success:
             return res
         patched = self._anchor_patched if mode == "flow" else self._patched
-        cov_res, cov_model = self._covariances(est, ninl, points, patched)
+        cov_res, cov_model = self._covariances(est, ninl, points, patched, dispute)
         res.sigma_pos_m, res.sigma_rot_deg = sigmas(cov_res + cov_model)
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique

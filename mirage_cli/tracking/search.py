@@ -84,12 +84,17 @@ class GuidedSearch:
                 if again[0].inliers.sum() > est.inliers.sum():
                     est, uv, X, kf, land, _ = again
                     radius /= 4
+        dispute = None
         if est.success and self._patch_ok(est.pose):
             got = self._patch_solve(est.pose)
-            if got is not None and self._patches_better(est, (X, uv), got):
-                est, uv, X, kf, land = got
-                self._patched = True
-        res = self._gate(est, len(uv), "detect", True, land, (X, uv), radius_px=radius)
+            if got is not None:
+                better, dispute = self._patch_verdict(est, (X, uv), got)
+                if better:
+                    est, uv, X, kf, land = got
+                    self._patched = True
+        res = self._gate(
+            est, len(uv), "detect", True, land, (X, uv), radius_px=radius, dispute=dispute
+        )
         if not res.ok and not self._patched and res.reason != Reason.AMBIGUOUS:
             # the keypoints' pose, a few inliers on a foreshortened face, may be far off
             # the prediction, where the patches can place nothing: from the prediction
