@@ -927,6 +927,17 @@ def test_far_landmark_sigma_covers_the_rotation_translation_trade_off():
     assert np.median(side / pe) > 0.7
 
 
+def _tracker_and_far_view(sample_model, times: float):
+    """The sample model, its camera, a tracker on them, and a view of the landmark from
+    `times` the first keyframe's distance."""
+    model = LandmarkModel.load(sample_model)
+    cam = Camera.load(SAMPLE / "camera_truth.yaml")
+    tracker = Tracker(model, cam, TrackSettings())
+    kf = model.keyframes[0].pose
+    far = look_at(LANDMARK_TARGET + times * (kf.center - LANDMARK_TARGET), LANDMARK_TARGET)
+    return model, cam, tracker, far
+
+
 def test_a_patched_pose_is_at_least_patch_error_floor_times_as_uncertain(sample_model):
     """Patches are placed within a few pixels of the pose they measure, from templates
     warped by it, so their residuals understate their error (far tuning seeds: patched
@@ -936,18 +947,13 @@ def test_a_patched_pose_is_at_least_patch_error_floor_times_as_uncertain(sample_
     keyframe's (from the keyframes' own distance only the count's share); beyond
     `patch_error_points` the count's share (n / k) when larger; keypoint poses are as
     their residuals show."""
-    from mirage_cli.pose import look_at
     from mirage_cli.solver import RefineOptions, solve_pose
-    from mirage_cli.tracking import Tracker, TrackSettings
 
-    model = LandmarkModel.load(sample_model)
-    cam = Camera.load(SAMPLE / "camera_truth.yaml")
-    s = TrackSettings()
-    tracker = Tracker(model, cam, s)
+    model, cam, tracker, far = _tracker_and_far_view(sample_model, 3.0)
+    s = tracker.settings
     rng = np.random.default_rng(3)
-    kf = model.keyframes[0].pose
-    near = look_at(kf.center, [0.0, 0.0, 0.15])  # the keyframe's distance, as from above
-    far = look_at(LANDMARK_TARGET + 3.0 * (kf.center - LANDMARK_TARGET), LANDMARK_TARGET)
+    # the keyframe's distance, as from above
+    near = look_at(model.keyframes[0].pose.center, [0.0, 0.0, 0.15])
     for truth, floor in ((far, s.patch_error_floor), (near, 1.0)):
         for n in (30, 120, 400):
             X = LANDMARK_TARGET + rng.uniform(-0.15, 0.15, (n, 3))
@@ -1061,18 +1067,11 @@ def test_keypoints_the_patches_dispute_cover_the_gap_in_their_covariance(sample_
     the frame (their sigma is smaller), but one of the two is wrong, so their covariance
     must take in the gap (`_patch_verdict`), and the gate calls the frame uncertain.
     Without the dispute the same pose is ok; patches that agree raise none."""
-    from mirage_cli.pose import look_at
     from mirage_cli.solver import RefineOptions, sigmas, solve_pose
-    from mirage_cli.tracking import Tracker, TrackSettings
     from mirage_cli.tracking.patching import pose_gap
 
-    model = LandmarkModel.load(sample_model)
-    cam = Camera.load(SAMPLE / "camera_truth.yaml")
-    s = TrackSettings()
-    tracker = Tracker(model, cam, s)
+    _, cam, tracker, truth = _tracker_and_far_view(sample_model, 2.5)
     rng = np.random.default_rng(5)
-    kf = model.keyframes[0].pose
-    truth = look_at(LANDMARK_TARGET + 2.5 * (kf.center - LANDMARK_TARGET), LANDMARK_TARGET)
     side = np.cross(truth.R[2], [0.0, 0.0, 1.0])
     off = look_at(truth.center + 0.10 * side / np.linalg.norm(side), LANDMARK_TARGET)
     refine = RefineOptions(reject_px=2.0, huber_px=0.5)

@@ -14,6 +14,7 @@ from ..patches import affine_maps, correlate, keyframe_pyramid, point_normals, t
 from ..pose import Pose, rotvec
 from ..records import FrameRecord, Reason, Status
 from ..solver import sigmas, solve_pose
+from .smooth import world_covariance
 
 PYRAMIDS_KEPT = 12  # keyframe image pyramids kept for patches
 
@@ -106,14 +107,16 @@ class PatchPlacement:
         theirs = self._covariances(got[0], n, (got[2], got[1]), patched=True)[0]
         if sigmas(theirs)[0] < sigmas(mine)[0]:
             return True, None
-        gap = pose_gap(est.pose, got[0].pose)
-        C = est.pose.R.T @ (mine + theirs)[3:, 3:] @ est.pose.R  # the centres' (in W)
+        C = world_covariance(mine + theirs, est.pose)[3:, 3:]  # the centres' (in W)
         dc = got[0].pose.center - est.pose.center
         try:
             far = float(dc @ np.linalg.solve(C, dc)) > self.settings.patch_dispute**2
         except np.linalg.LinAlgError:
             far = False
-        return False, (np.outer(gap, gap) if far else None)
+        if not far:
+            return False, None
+        gap = pose_gap(est.pose, got[0].pose)
+        return False, np.outer(gap, gap)
 
     def _patch_ok(self, pose: Pose) -> bool:
         """Patches where keypoints are weak: a small box (upsampled: a far landmark) or a
