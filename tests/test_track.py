@@ -1096,6 +1096,55 @@ def test_keypoints_the_patches_dispute_cover_the_gap_in_their_covariance(sample_
     assert sigmas(held.measurement.cov)[0] >= 0.09  # what the smoother is given, too
 
 
+def test_a_few_ground_inliers_that_move_the_pose_make_it_carry_the_gap(sample_model):
+    """Three inliers on the floor beside the landmark, measured from a camera 3 cm to
+    the side, pull the pose their way and shrink its sigma (near tuning seed 62: 2 ground
+    inliers of 30, sigma 0.3 cm on a pose 4 cm off). The gate fits it again on the
+    landmark's points alone (`_ground_dispute`): the ground moved it beyond
+    `patch_dispute` sigma, so its covariance takes in the gap. The same points marked as
+    the landmark's, or four off it (a floor that constrains the pose), raise none."""
+    from dataclasses import replace
+
+    from mirage_cli.solver import RefineOptions, solve_pose
+    from mirage_cli.tracking.patching import pose_gap
+    from mirage_cli.tracking.smooth import world_covariance
+
+    model, cam, tracker, truth = _tracker_and_far_view(sample_model, 1.5)
+    rng = np.random.default_rng(0)
+    side = np.cross(truth.R[2], [0.0, 0.0, 1.0])
+    off = look_at(truth.center + 0.03 * side / np.linalg.norm(side), LANDMARK_TARGET)
+    land = LANDMARK_TARGET + rng.uniform(-0.1, 0.1, (30, 3))
+    ground = np.array([[0.6, 0.7, 0.0], [0.65, 0.75, 0.0], [0.55, 0.72, 0.0], [0.7, 0.6, 0.0]])
+    uv_land = cam.project(land, truth) + rng.normal(0, 0.3, (30, 2))
+
+    def fitted(k):
+        X = np.vstack([land, ground[:k]])
+        uv = np.vstack([uv_land, cam.project(ground[:k], off)])
+        est = solve_pose(X, uv, cam, truth, refine=RefineOptions(reject_px=2.0, huber_px=0.5))
+        return est, (X, uv), np.arange(len(X)) < 30
+
+    est, points, on_landmark = fitted(3)
+    assert est.inliers.all()
+    n = int(est.inliers.sum())
+    alt = solve_pose(points[0][:30], points[1][:30], cam, est.pose, refine=tracker.settings.refine)
+    gap = pose_gap(est.pose, alt.pose)
+    dc = alt.pose.center - est.pose.center
+    dispute = tracker._ground_dispute(est, points, on_landmark, n, False)
+    np.testing.assert_allclose(dispute, np.outer(gap, gap), atol=1e-9)
+    def beyond(record):  # the gap in the frame's centre covariance, squared sigmas
+        C = world_covariance(record.measurement.cov, est.pose)[3:, 3:]
+        return float(dc @ np.linalg.solve(C, dc))
+
+    # the gated frame covers the gap; without the check it claims a sigma the gap is beyond
+    assert beyond(tracker._gate(est, n, "detect", False, on_landmark, points)) < 1.0
+    blind = Tracker(model, cam, replace(tracker.settings, ground_dispute_max=0))
+    assert beyond(blind._gate(est, n, "detect", False, on_landmark, points)) > 9.0
+    assert tracker._ground_dispute(est, points, np.ones(n, bool), n, False) is None
+    est4, points4, on4 = fitted(4)
+    assert est4.inliers[30:].sum() == 4
+    assert tracker._ground_dispute(est4, points4, on4, int(est4.inliers.sum()), False) is None
+
+
 def test_pose_gap_is_the_solvers_left_perturbation():
     from mirage_cli.pose import Pose, rodrigues
     from mirage_cli.tracking.patching import pose_gap

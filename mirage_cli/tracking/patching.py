@@ -26,6 +26,22 @@ def pose_gap(a: Pose, b: Pose) -> np.ndarray:
     return np.concatenate([rotvec(dR), b.t - dR @ a.t])
 
 
+def disputed(a: Pose, b: Pose, cov: np.ndarray, limit: float) -> np.ndarray | None:
+    """The covariance a must also cover when b, another measurement of the same frame,
+    puts the camera more than `limit` sigma from it (`cov`: the solver's (w, v) at a; its
+    centre's part in W decides): the outer product of the gap. None when within."""
+    C = world_covariance(cov, a)[3:, 3:]
+    dc = b.center - a.center
+    try:
+        far = float(dc @ np.linalg.solve(C, dc)) > limit**2
+    except np.linalg.LinAlgError:
+        return None
+    if not far:
+        return None
+    gap = pose_gap(a, b)
+    return np.outer(gap, gap)
+
+
 class PatchPlacement:
     """Keyframe patches while tracking (a mixin of Tracker)."""
 
@@ -107,16 +123,7 @@ class PatchPlacement:
         theirs = self._covariances(got[0], n, (got[2], got[1]), patched=True)[0]
         if sigmas(theirs)[0] < sigmas(mine)[0]:
             return True, None
-        C = world_covariance(mine + theirs, est.pose)[3:, 3:]  # the centres' (in W)
-        dc = got[0].pose.center - est.pose.center
-        try:
-            far = float(dc @ np.linalg.solve(C, dc)) > self.settings.patch_dispute**2
-        except np.linalg.LinAlgError:
-            far = False
-        if not far:
-            return False, None
-        gap = pose_gap(est.pose, got[0].pose)
-        return False, np.outer(gap, gap)
+        return False, disputed(est.pose, got[0].pose, mine + theirs, self.settings.patch_dispute)
 
     def _patch_ok(self, pose: Pose) -> bool:
         """Patches where keypoints are weak: a small box (upsampled: a far landmark) or a

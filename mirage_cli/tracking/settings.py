@@ -76,6 +76,8 @@ class TrackSettings:
     patch_dispute: float = 3.0  # sigmas apart (the two centres) at which the keypoints'
     # pose must cover the patches' (`_patch_verdict`; far tuning seeds: 23 of ~7000 ok
     # frames, 3 of them wrong, were kept by keypoints the patches put 3 sigma or more away)
+    ground_dispute_max: int = 3  # a detected or flowed pose with at most this many inliers
+    # off the landmark is fitted again without them (`_ground_dispute`; 0: never)
     patch_max_points: int = 300  # per keyframe
     patch_error_points: float = 60.0  # patch errors average like this many points
     patch_error_floor: float = 3.0  # and a patched pose's covariance is at least this many
