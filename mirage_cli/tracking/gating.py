@@ -128,6 +128,14 @@ class PoseGate:
             if checked is not est:
                 vars(est).update(vars(checked))
 
+    def _gate_covariances(self, est, ninl, mode, points, on_landmark, dispute):
+        """`_covariances` for the gate: a flowed pose's points were placed as its anchor's
+        were; a detected or flowed one may be disputed by its few ground inliers."""
+        patched = self._anchor_patched if mode == "flow" else self._patched
+        if dispute is None and mode in ("detect", "flow"):
+            dispute = self._ground_dispute(est, points, on_landmark, ninl, patched)
+        return self._covariances(est, ninl, points, patched, dispute)
+
     def _ground_dispute(self, est, points, on_landmark, ninl, patched) -> np.ndarray | None:
         """A few inliers off the landmark (the ground by its foot) can pin a direction the
         landmark's own points leave open, and cut the sigma several times while the pose is
@@ -207,10 +215,7 @@ class PoseGate:
         )
         if not est.success:
             return res
-        patched = self._anchor_patched if mode == "flow" else self._patched
-        if dispute is None and mode in ("detect", "flow"):
-            dispute = self._ground_dispute(est, points, on_landmark, ninl, patched)
-        cov_res, cov_model = self._covariances(est, ninl, points, patched, dispute)
+        cov_res, cov_model = self._gate_covariances(est, ninl, mode, points, on_landmark, dispute)
         res.sigma_pos_m, res.sigma_rot_deg = sigmas(cov_res + cov_model)
         # with a prediction a few points can make an ok pose (their uncertainty decides
         # below); without one, a pose needs the numbers that make RANSAC's answer unique
