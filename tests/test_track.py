@@ -1129,8 +1129,10 @@ def test_a_few_ground_inliers_that_move_the_pose_make_it_carry_the_gap(sample_mo
     alt = solve_pose(points[0][:30], points[1][:30], cam, est.pose, refine=tracker.settings.refine)
     gap = pose_gap(est.pose, alt.pose)
     dc = alt.pose.center - est.pose.center
-    dispute = tracker._ground_dispute(est, points, on_landmark, n, False)
+    own = tracker._covariances(est, n, points)[0]
+    dispute = tracker._ground_dispute(est, points, on_landmark, own)
     np.testing.assert_allclose(dispute, np.outer(gap, gap), atol=1e-9)
+
     def beyond(record):  # the gap in the frame's centre covariance, squared sigmas
         C = world_covariance(record.measurement.cov, est.pose)[3:, 3:]
         return float(dc @ np.linalg.solve(C, dc))
@@ -1139,10 +1141,11 @@ def test_a_few_ground_inliers_that_move_the_pose_make_it_carry_the_gap(sample_mo
     assert beyond(tracker._gate(est, n, "detect", False, on_landmark, points)) < 1.0
     blind = Tracker(model, cam, replace(tracker.settings, ground_dispute_max=0))
     assert beyond(blind._gate(est, n, "detect", False, on_landmark, points)) > 9.0
-    assert tracker._ground_dispute(est, points, np.ones(n, bool), n, False) is None
+    assert tracker._ground_dispute(est, points, np.ones(n, bool), own) is None
     est4, points4, on4 = fitted(4)
     assert est4.inliers[30:].sum() == 4
-    assert tracker._ground_dispute(est4, points4, on4, int(est4.inliers.sum()), False) is None
+    own4 = tracker._covariances(est4, int(est4.inliers.sum()), points4)[0]
+    assert tracker._ground_dispute(est4, points4, on4, own4) is None
 
 
 def test_pose_gap_is_the_solvers_left_perturbation():

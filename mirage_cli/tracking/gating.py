@@ -132,29 +132,33 @@ class PoseGate:
         """`_covariances` for the gate: a flowed pose's points were placed as its anchor's
         were; a detected or flowed one may be disputed by its few ground inliers."""
         patched = self._anchor_patched if mode == "flow" else self._patched
+        own, shared = self._covariances(est, ninl, points, patched, dispute)
         if dispute is None and mode in ("detect", "flow"):
-            dispute = self._ground_dispute(est, points, on_landmark, ninl, patched)
-        return self._covariances(est, ninl, points, patched, dispute)
+            ground = self._ground_dispute(est, points, on_landmark, own)
+            if ground is not None:
+                own = own + ground
+        return own, shared
 
-    def _ground_dispute(self, est, points, on_landmark, ninl, patched) -> np.ndarray | None:
+    def _ground_dispute(self, est, points, on_landmark, own) -> np.ndarray | None:
         """A few inliers off the landmark (the ground by its foot) can pin a direction the
         landmark's own points leave open, and cut the sigma several times while the pose is
         wrong (near tuning seed 62: 2 ground inliers of 30, sigma 0.3 cm, 4 cm and 2.5 deg
-        off). Fit again without them: a pose they moved beyond `patch_dispute` sigma
-        carries the gap in its covariance, as keypoints the patches dispute do."""
+        off). Fit again without them: a pose they moved beyond `patch_dispute` sigma (of
+        `own`, the pose's own covariance) carries the gap in its covariance, as keypoints
+        the patches dispute do."""
         if on_landmark is None or points is None:
             return None
         keep = est.inliers & on_landmark
-        off = ninl - int(keep.sum())
-        if not 0 < off <= self.settings.ground_dispute_max or keep.sum() < 6:
+        n_keep = int(keep.sum())
+        off = int(est.inliers.sum()) - n_keep
+        if not 0 < off <= self.settings.ground_dispute_max or n_keep < 6:
             return None
         X, uv = points
         alt = solve_pose(X[keep], uv[keep], self.camera, est.pose, method=self.settings.method,
                          refine=self.settings.refine)  # fmt: skip
         if not alt.success:
             return None
-        mine = self._covariances(est, ninl, points, patched)[0]
-        return disputed(est.pose, alt.pose, mine, self.settings.patch_dispute)
+        return disputed(est.pose, alt.pose, own, self.settings.patch_dispute)
 
     def _implausible(self, pose) -> bool:
         """Rolled more than `max_roll_deg` beyond every keyframe (W's up in the image,
