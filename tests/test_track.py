@@ -1037,6 +1037,48 @@ def test_a_sharper_cameras_lost_frames_are_searched_at_the_keyframes_scale(
     assert len(back) >= 20 and max(err) < 0.01, (len(back), max(err))
 
 
+def test_a_coarser_cameras_lost_frames_are_searched_upsampled(sample_model, monkeypatch):
+    """The sample orbit's frames 415-427 through a camera 3x coarser than the model's
+    (213x160, the frames shrunk): the landmark is in fewer pixels than in any keyframe,
+    and a whole-frame search at that size finds too few matches to relocalise (lost until
+    frame 424). A lost frame is searched upsampled towards the keyframes' scale (3x:
+    639x480), so it is found in the second frame and tracked to the truth."""
+    from mirage_cli.tracking import tracker as tracker_module
+
+    model = LandmarkModel.load(sample_model)
+    truth = read_pose_csv(SAMPLE / "orbit_truth.csv")
+    cam = model.camera.scaled(213, 160)
+    frames = [
+        Frame(f.index, f.id, f.time_s, cv2.resize(f.image, cam.size, interpolation=cv2.INTER_AREA))
+        for f in FrameSource([SAMPLE / "orbit.mp4"]).frames(415, 428)
+    ]  # fmt: skip
+    detect = schedule.detect
+
+    def run(upsample_max):
+        sizes: Counter = Counter()
+
+        def spy(gray, detector, *args):
+            sizes[tracker.lost_run > 0, gray.shape[::-1]] += 1
+            return detect(gray, detector, *args)
+
+        monkeypatch.setattr(tracker_module, "SEARCH_UPSAMPLE_MAX", upsample_max)
+        tracker = Tracker(model, cam, TrackSettings())
+        monkeypatch.setattr(schedule, "detect", spy)
+        monkeypatch.setattr(schedule, "_worker", lambda: _Inline())
+        return list(track_frames(iter(frames), tracker)), sizes, tracker
+
+    recs, sizes, tracker = run(3.0)
+    assert tracker.search_scale == 0.33
+    assert sizes[True, (645, 485)] >= 1, sizes
+    found = [r for r in recs if r.ok]
+    assert found[0].frame <= 416 and len(found) >= 11, [r.frame for r in found]
+    err = [r.pose.distance_to(row_pose(truth.iloc[r.frame])) for r in found]
+    assert max(err) < 0.015, err
+    native, _, t1 = run(1.0)
+    assert t1.search_scale == 1.0
+    assert min(r.frame for r in native if r.ok) >= 424
+
+
 def test_the_kernels_load_early_and_a_failure_there_is_not_lost(monkeypatch):
     """`mirage track` loads the compiled kernels on a thread while the model and video
     open; the solver's first use waits for it, and an error there is raised then (not

@@ -189,10 +189,11 @@ class DetectionSchedule:
 
 
 def _scaled_detect(gray: np.ndarray, scale: float, detector) -> tuple[np.ndarray, np.ndarray]:
-    """Features of `gray` shrunk by `scale` (>= 1), in `gray`'s pixels."""
-    if scale <= 1:
+    """Features of `gray` shrunk by `scale` (below 1: upsampled), in `gray`'s pixels."""
+    if scale == 1:
         return detect(gray, detector)
-    small = cv2.resize(gray, None, fx=1 / scale, fy=1 / scale, interpolation=cv2.INTER_AREA)
+    interp = cv2.INTER_AREA if scale > 1 else cv2.INTER_CUBIC
+    small = cv2.resize(gray, None, fx=1 / scale, fy=1 / scale, interpolation=interp)
     kps, desc = detect(small, detector)
     # pixel centres: (u + 0.5) * scale - 0.5
     return kps * np.float32(scale) + np.float32((scale - 1) / 2), desc

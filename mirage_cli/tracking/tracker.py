@@ -43,6 +43,10 @@ from .schedule import DetectionSchedule
 from .search import SHRINK_MARGIN, GuidedSearch, _median_depth
 from .settings import TrackSettings
 
+# a lost frame of a camera coarser than the model's (the same landmark in fewer pixels) is
+# searched upsampled towards the keyframes' scale, by at most this factor
+SEARCH_UPSAMPLE_MAX = 3.0
+
 
 def warm_up() -> None:
     """Compile (or load from the cache) the solver's and guided matching's kernels, so that
@@ -140,6 +144,11 @@ class Tracker(
         # a lost frame's search only has to find the landmark (the frames after it are
         # tracked at full_scale): at the keyframes' own scale, 1/1.56 of the pixels
         self.search_scale = round(self._focal_ratio, 2) if sharper else 1.0
+        # a coarser one (a model from a phone's photos, a 240p drone feed): upsampled to
+        # it, so that the finest features the keyframes hold exist in the frame too
+        # (dtu_scan37's stills shrunk 3x: 18 -> 25 of 36 found, `benchmarks/real.py`)
+        if self._focal_ratio <= 1 / settings.shrink_above:
+            self.search_scale = round(max(self._focal_ratio, 1 / SEARCH_UPSAMPLE_MAX), 2)
         self.px_scale = 1.0  # the current features' pixel size, in this frame's pixels
         # how high each keyframe looks at the landmark (when to match its squashed views)
         land = P[self.on_landmark] if self.on_landmark.any() else P
@@ -231,7 +240,9 @@ class Tracker(
 
     def _at_scale(self, f: float) -> None:
         """Features detected on an image shrunk by `f`: the pixel limits follow (until the
-        next detection: flowed points keep their detection's)."""
+        next detection: flowed points keep their detection's). Upsampled features keep the
+        frame's own limits, as an upsampled box's do."""
+        f = max(1.0, f)
         if f != self.px_scale:
             self.px_scale, self.settings = f, self.base_settings.at_scale(f)
 
