@@ -149,6 +149,7 @@ class Tracker(
         # (dtu_scan37's stills shrunk 3x: 18 -> 25 of 36 found, `benchmarks/real.py`)
         if self._focal_ratio <= 1 / settings.shrink_above:
             self.search_scale = round(max(self._focal_ratio, 1 / SEARCH_UPSAMPLE_MAX), 2)
+            self.full_scale = self.search_scale  # and so is a tracked frame (its boxes too)
         self.px_scale = 1.0  # the current features' pixel size, in this frame's pixels
         # how high each keyframe looks at the landmark (when to match its squashed views)
         land = P[self.on_landmark] if self.on_landmark.any() else P
