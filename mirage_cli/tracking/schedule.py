@@ -161,7 +161,7 @@ class DetectionSchedule:
         """A tracked frame's whole frame (its box would cover most of it), at the scale of
         the tracking boxes when the video's camera is sharper than the model's (the
         keyframes' scale with `SHRINK_MARGIN`: a 1080p video against a 640x480 model, 0.31
-        of the pixels)."""
+        of the pixels), upsampled to it when coarser (`detection_scales`)."""
         return _scaled_detect(gray, self.full_scale, detector)
 
     def _upsamples(self, box) -> bool:
@@ -172,7 +172,8 @@ class DetectionSchedule:
 
     def _box_features(self, gray: np.ndarray, box, detector) -> tuple[np.ndarray, np.ndarray]:
         """Features in the pixel box (None: the whole frame): shrunk first when the landmark
-        looks larger than from its keyframes, else upsampled when the box is small."""
+        looks larger than from its keyframes, else upsampled when the box is small or the
+        camera coarser than the model's (`detection_scales`)."""
         if box is None:
             return self._full_features(gray, detector)
         x0, y0, x1, y1, shrink = box

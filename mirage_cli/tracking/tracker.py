@@ -43,9 +43,26 @@ from .schedule import DetectionSchedule
 from .search import SHRINK_MARGIN, GuidedSearch, _median_depth
 from .settings import TrackSettings
 
-# a lost frame of a camera coarser than the model's (the same landmark in fewer pixels) is
-# searched upsampled towards the keyframes' scale, by at most this factor
+# a camera coarser than the model's (the same landmark in fewer pixels) is detected
+# upsampled towards the keyframes' scale, by at most this factor
 SEARCH_UPSAMPLE_MAX = 3.0
+
+
+def detection_scales(focal_ratio: float, settings: TrackSettings) -> tuple[float, float]:
+    """The scales (shrink factors: below 1, upsampled) a tracked frame's whole frame and a
+    lost frame's search are detected at, for a video whose focal length is `focal_ratio`
+    times the model's. Sharper by `shrink_above` or more: a tracked frame at the keyframes'
+    scale with the boxes' SHRINK_MARGIN, and a lost frame, which only has to find the
+    landmark, at the keyframes' own (1/1.56 of the pixels). Coarser by as much (a model from
+    a phone's photos, a 240p drone feed): both upsampled to the keyframes' scale, boxes too,
+    so that the finest features the keyframes hold exist in the frame (dtu_scan37's stills
+    shrunk 3x: 50 -> 94% tracked, `benchmarks/real.py`). Else the frame's own."""
+    if focal_ratio >= settings.shrink_above:
+        return round(focal_ratio / SHRINK_MARGIN, 2), round(focal_ratio, 2)
+    if focal_ratio <= 1 / settings.shrink_above:
+        up = round(max(focal_ratio, 1 / SEARCH_UPSAMPLE_MAX), 2)
+        return up, up
+    return 1.0, 1.0
 
 
 def warm_up() -> None:
@@ -136,20 +153,7 @@ class Tracker(
             [_median_depth(kf.pose, X) for kf, X in zip(kfs, self._kf_points, strict=True)]
         )
         self._focal_ratio = float(camera.K[0, 0] / model.camera.K[0, 0])
-        # a camera sharper than the model's: a tracked frame's whole frame is detected at
-        # the keyframes' scale with the boxes' SHRINK_MARGIN (the landmark at the
-        # keyframes' distance looks as large as in them)
-        sharper = self._focal_ratio >= settings.shrink_above
-        self.full_scale = round(self._focal_ratio / SHRINK_MARGIN, 2) if sharper else 1.0
-        # a lost frame's search only has to find the landmark (the frames after it are
-        # tracked at full_scale): at the keyframes' own scale, 1/1.56 of the pixels
-        self.search_scale = round(self._focal_ratio, 2) if sharper else 1.0
-        # a coarser one (a model from a phone's photos, a 240p drone feed): upsampled to
-        # it, so that the finest features the keyframes hold exist in the frame too
-        # (dtu_scan37's stills shrunk 3x: 18 -> 25 of 36 found, `benchmarks/real.py`)
-        if self._focal_ratio <= 1 / settings.shrink_above:
-            self.search_scale = round(max(self._focal_ratio, 1 / SEARCH_UPSAMPLE_MAX), 2)
-            self.full_scale = self.search_scale  # and so is a tracked frame (its boxes too)
+        self.full_scale, self.search_scale = detection_scales(self._focal_ratio, settings)
         self.px_scale = 1.0  # the current features' pixel size, in this frame's pixels
         # how high each keyframe looks at the landmark (when to match its squashed views)
         land = P[self.on_landmark] if self.on_landmark.any() else P
