@@ -516,10 +516,12 @@ def prefetch(frames: Iterator[Frame], depth: int = 4) -> Iterator[Frame]:
 
 
 def matching_camera(camera: Camera, width: int, height: int) -> Camera:
-    """The camera for frames of another size: scaled when the aspect ratio matches."""
+    """The camera for frames of another size: scaled when the aspect ratio matches, to
+    within the half pixel each side was rounded to (800x600 shrunk 3x is 267x200); a crop
+    of a few rows (1920x1088 against 1920x1080) is not a scale and is refused."""
     if (width, height) == camera.size:
         return camera
-    if abs(width * camera.height - height * camera.width) <= max(width, height) * 0.01:
+    if abs(width * camera.height - height * camera.width) <= (camera.width + camera.height) / 2:
         log.warning(
             f"frames are {width}x{height}, camera is {camera.width}x{camera.height}:"
             " scaling the intrinsics"

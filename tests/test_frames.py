@@ -93,6 +93,10 @@ def test_matching_camera_scales_or_refuses():
     assert half.K[0, 0] == pytest.approx(cam.K[0, 0] / 2) and half.size == (320, 240)
     with pytest.raises(InputError, match="320x320"):
         matching_camera(cam, 320, 320)
+    third = matching_camera(cam, 213, 160)  # 640x480 shrunk 3x, rounded
+    assert third.size == (213, 160) and third.K[1, 1] == pytest.approx(cam.K[1, 1] / 3)
+    with pytest.raises(InputError, match="640x472"):
+        matching_camera(cam, 640, 472)  # 8 rows cropped: not the same lens scaled
 
 
 def test_track_image_times_agree_in_csv_and_tum(sample_model, tmp_path, mirage):
