@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from .boards import Board
+from .camera import Camera, lens_fold_warning
 from .errors import InputError, cv_message
 from .frames import FrameSource, read_image
 from .runtime import opencv_one_thread
@@ -500,6 +501,9 @@ def weak_data_warnings(
             f"RMS reprojection error {c.rms_px:.2f} px > 1 px; check board size, "
             "square size, focus and motion blur"
         )
+    fold = lens_fold_warning(Camera(c.K, c.dist, w, h))
+    if fold:
+        out.append(fold + "; add views with the board in the corners, or try --model 8")
     return out
 
 

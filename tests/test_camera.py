@@ -455,3 +455,47 @@ def test_model_file_keeps_a_fisheye_camera(tmp_path):
     back = LandmarkModel.load(path).camera
     assert back.model == "fisheye" and back.same_as(cam)
     assert np.allclose(back.project(pts, pose), kf.keypoints, atol=1e-3)
+
+
+def _folding_camera() -> Camera:
+    """A strong barrel term at a short focal length (a random scene family's camera at
+    the edge of its range): the polynomial folds back 299 px from the centre (r_d = 0.68
+    at r = 1), inside a 640x480 image's corners (400 px)."""
+    K = np.array([[440.0, 0, 319.5], [0, 440.0, 239.5], [0, 0, 1]])
+    return Camera(K, np.array([-0.3, -0.02, 0, 0, 0]), 640, 480)
+
+
+def test_the_pixels_beyond_a_lens_models_fold_are_those_without_a_ray():
+    """`beyond_fold` is the share of pixels whose undistorted ray does not project back to
+    them: beyond the fold OpenCV's iterative undistortion hands a pixel a wrong ray (tens
+    to hundreds of px off); inside it the round trip holds to 1e-3 px. The sample's lens folds
+    nowhere in its image."""
+    cam = _folding_camera()
+    fold = cam.fold_radius() * cam.K[0, 0]
+    assert 280 < fold < 310, fold
+    u, v = np.meshgrid(np.arange(0, 640, 8) + 1.5, np.arange(0, 480, 8) + 1.5)
+    px = np.column_stack([u.ravel(), v.ravel()])
+    back = cam.project(cam.pixel_rays(px) * 5.0, Pose(np.eye(3), np.zeros(3)))
+    err = np.linalg.norm(back - px, axis=1)
+    r = np.hypot(px[:, 0] - 319.5, px[:, 1] - 239.5)
+    assert err[r < fold - 2].max() < 1e-3
+    assert np.median(err[r > fold + 10]) > 5.0
+    assert cam.beyond_fold() == pytest.approx(np.mean(r >= fold), abs=0.01)
+    assert 0.1 < cam.beyond_fold() < 0.25
+    sample = Camera.load(SAMPLE / "camera_truth.yaml")
+    assert sample.fold_radius() == float("inf") or sample.beyond_fold() == 0.0
+
+
+def test_tracking_with_a_lens_that_folds_in_the_image_says_so(tmp_path, sample_model, mirage):
+    """A camera file whose distortion folds inside the image (corners never calibrated)
+    is tracked, with one warning line that says how much of the image has no ray."""
+    cam_file = tmp_path / "folding.yaml"
+    _folding_camera().save(cam_file)
+    p = mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--camera", cam_file,
+               "--end", "3", "-o", tmp_path / "poses.csv")  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    lines = [ln for ln in (p.stdout + p.stderr).splitlines() if "folds back" in ln]
+    assert len(lines) == 1 and "299 px" in lines[0] and "of the image" in lines[0], lines
+    p = mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--end", "3",
+               "-o", tmp_path / "poses2.csv")  # fmt: skip
+    assert p.returncode == 0 and "folds back" not in p.stdout + p.stderr

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from .. import refine, runtime, signals
-from ..camera import Camera
+from ..camera import Camera, lens_fold_warning
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
 from ..fileio import atomic_path, video_frames_written
 from ..frames import Frame, FrameSource, matching_camera, prefetch
@@ -83,7 +83,10 @@ def tracking_camera(
             f"track: the model was built with another camera ({_describe(model.camera)}); "
             f"tracking with {origin} ({_describe(camera)})"
         )
-    return matching_camera(camera, *src.size)
+    camera = matching_camera(camera, *src.size)
+    if (fold := lens_fold_warning(camera)) is not None:
+        reporter.echo(f"track: warning: {fold}; recalibrate with the board in the corners")
+    return camera
 
 
 def _describe(camera: Camera) -> str:
