@@ -163,38 +163,6 @@ class Camera:
         d = np.column_stack([xy, np.ones(len(xy))])
         return d / np.linalg.norm(d, axis=1, keepdims=True)
 
-    def fold_radius(self) -> float:
-        """The distorted radius (normalised image coordinates) where the standard model's
-        radial term stops growing: a pixel further from the principal point has no ray
-        (the polynomial folds back, so iterative undistortion hands it a wrong one). inf
-        when it grows up to 70 deg off axis; a fisheye camera's is its own model, not
-        checked (inf)."""
-        if self.model != PINHOLE:
-            return float("inf")
-        d = np.zeros(8)
-        d[: min(8, self.dist.size)] = self.dist[:8]
-        k1, k2, _, _, k3, k4, k5, k6 = d
-        r = np.linspace(0.0, np.tan(np.radians(70.0)), 4000)
-        r2 = r * r
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        rd = r * num / den
-        falls = np.flatnonzero((np.diff(rd) <= 0) | (den[1:] <= 0))
-        return float(rd[falls[0]]) if len(falls) else float("inf")
-
-    def beyond_fold(self) -> float:
-        """Share of the image's pixels beyond `fold_radius`: 0 for a lens model valid over
-        the whole image. A strong barrel term fitted without views in the corners (k1
-        -0.3 at fx 440 px folds 300 px from the centre, inside a 640x480 image's corners)
-        maps those pixels to wrong rays."""
-        fold = self.fold_radius()
-        if not np.isfinite(fold):
-            return 0.0
-        u, v = np.meshgrid(np.arange(0, self.width, 4) + 1.5, np.arange(0, self.height, 4) + 1.5)
-        x = (u - self.K[0, 2]) / self.K[0, 0]
-        y = (v - self.K[1, 2]) / self.K[1, 1]
-        return float(np.mean(np.hypot(x, y) >= fold))
-
     def scaled(self, width: int, height: int) -> Camera:
         """The same lens at another resolution (same aspect ratio expected)."""
         sx, sy = width / self.width, height / self.height
@@ -302,12 +270,46 @@ class Camera:
             fs.release()
 
 
+def fold_radius(camera: Camera) -> float:
+    """The distorted radius (normalised image coordinates) where the standard model's
+    radial term stops growing: a pixel further from the principal point has no ray
+    (the polynomial folds back, so iterative undistortion hands it a wrong one). inf
+    when it grows up to 70 deg off axis; a fisheye camera's is its own model, not
+    checked (inf)."""
+    if camera.model != PINHOLE:
+        return float("inf")
+    d = np.zeros(8)
+    d[: min(8, camera.dist.size)] = camera.dist[:8]
+    k1, k2, _, _, k3, k4, k5, k6 = d
+    r = np.linspace(0.0, np.tan(np.radians(70.0)), 4000)
+    r2 = r * r
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    rd = r * num / den
+    falls = np.flatnonzero((np.diff(rd) <= 0) | (den[1:] <= 0))
+    return float(rd[falls[0]]) if len(falls) else float("inf")
+
+
+def beyond_fold(camera: Camera) -> float:
+    """Share of the image's pixels beyond `fold_radius`: 0 for a lens model valid over
+    the whole image. A strong barrel term fitted without views in the corners (k1
+    -0.3 at fx 440 px folds 300 px from the centre, inside a 640x480 image's corners)
+    maps those pixels to wrong rays."""
+    fold = fold_radius(camera)
+    if not np.isfinite(fold):
+        return 0.0
+    u, v = np.meshgrid(np.arange(0, camera.width, 4) + 1.5, np.arange(0, camera.height, 4) + 1.5)
+    x = (u - camera.K[0, 2]) / camera.K[0, 0]
+    y = (v - camera.K[1, 2]) / camera.K[1, 1]
+    return float(np.mean(np.hypot(x, y) >= fold))
+
+
 def lens_fold_warning(camera: Camera) -> str | None:
-    """Why part of the image has no valid ray (`Camera.beyond_fold`), or None."""
-    share = camera.beyond_fold()
+    """Why part of the image has no valid ray (`beyond_fold`), or None."""
+    share = beyond_fold(camera)
     if share <= 0:
         return None
-    px = camera.fold_radius() * camera.K[0, 0]
+    px = fold_radius(camera) * camera.K[0, 0]
     return (
         f"the lens distortion folds back {px:.0f} px from the principal point: {share:.1%} "
         "of the image (its corners) maps to no valid ray, so features there give wrong rays"
