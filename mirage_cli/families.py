@@ -22,12 +22,13 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .camera import Camera
+from .camera import Camera, fold_radius
 from .pose import Pose, look_at, matrix_from_rpy
 from .render import Cylinder, Rect, Scene, random_texture, stable_rng
 from .synth import Disk
 
 FAMILIES = ("near", "far", "above")
+LENS_FOLD_MARGIN = 1.05  # a drawn lens grows at least this far past the corners
 
 # skimage.data's bundled photographs with texture enough to be a printed or painted face
 # (silhouettes, colour wheels and tiny images left out)
@@ -282,7 +283,10 @@ def _floor(rng: np.random.Generator, seed: int, half: float) -> tuple[Rect, str]
 # --------------------------------------------------------------------------------------
 def random_camera(rng: np.random.Generator) -> Camera:
     """A 640x480 camera: focal length 440-700 px, principal point off centre by up to 12
-    px, barrel or mild pincushion distortion."""
+    px, barrel or mild pincushion distortion that grows out to the image's corners (a
+    barrel term that folds back inside them, as k1 -0.3 at 440 px does, renders pixels
+    with no ray: `camera.beyond_fold`; such a draw is drawn again from a generator of its
+    own, so the scene's other draws stay as they were)."""
     fx = rng.uniform(440, 700)
     K = np.array(
         [
@@ -300,7 +304,16 @@ def random_camera(rng: np.random.Generator) -> Camera:
             0.0,
         ]
     )
-    return Camera(K, dist, 640, 480)
+    cam = Camera(K, dist, 640, 480)
+    corners = np.array([[0, 0], [639, 0], [0, 479], [639, 479]], float)
+    reach = np.hypot(*((corners - K[:2, 2]) / np.diag(K)[:2]).T).max()
+    attempt = 0
+    while fold_radius(cam) < LENS_FOLD_MARGIN * reach:
+        attempt += 1
+        sub = np.random.default_rng([int(fx * 1e6), attempt])
+        dist[:2] = sub.uniform(-0.3, 0.05), sub.uniform(-0.02, 0.1)
+        cam = Camera(K, dist, 640, 480)
+    return cam
 
 
 @dataclass
