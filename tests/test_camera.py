@@ -499,3 +499,15 @@ def test_tracking_with_a_lens_that_folds_in_the_image_says_so(tmp_path, sample_m
     p = mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--end", "3",
                "-o", tmp_path / "poses2.csv")  # fmt: skip
     assert p.returncode == 0 and "folds back" not in p.stdout + p.stderr
+
+
+def test_building_a_model_with_a_lens_that_folds_in_the_image_says_so(tmp_path, mirage):
+    """`mirage build-model` warns as `track` does, once, and still builds."""
+    cam_file = tmp_path / "folding.yaml"
+    _folding_camera().save(cam_file)
+    kf = SAMPLE / "keyframes"
+    p = mirage("build-model", kf, "--camera", cam_file, "--poses", kf / "poses.csv",
+               "-o", tmp_path / "m.mirage")  # fmt: skip
+    lines = [ln for ln in (p.stdout + p.stderr).splitlines() if "folds back" in ln]
+    assert len(lines) == 1 and "299 px" in lines[0], (lines, p.stderr[-500:])
+    assert p.returncode == 0 and (tmp_path / "m.mirage").stat().st_size > 0, p.stderr

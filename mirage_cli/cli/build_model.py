@@ -9,7 +9,7 @@ import click
 from .. import signals
 from ..boards import load_board
 from ..build_model import ROI, UP_AXES, BuildResult, BuildSettings, coverage_warning
-from ..camera import Camera
+from ..camera import Camera, lens_fold_warning
 from ..errors import InputError
 from ..features import DETECTORS, DetectorSettings
 from ..fileio import check_writable, refuse_overwrite
@@ -231,6 +231,8 @@ def build_model_cmd(
     t0 = time.perf_counter()
     sources = with_topic(inputs, topic)  # a bag input carries its --topic
     camera = Camera.load(camera_path) if camera_path else _bag_camera(sources)
+    if (fold := lens_fold_warning(camera)) is not None:
+        ui.log.warning(f"{fold}; recalibrate with the board in the corners")
     board = load_board(board_path) if board_path else None
     settings = BuildSettings(
         detector=DetectorSettings(detector, nfeatures),
