@@ -19,6 +19,7 @@ from mirage_cli.calibrate import (
     detect_images,
     detect_video,
     find_corners,
+    weak_data_warnings,
 )
 from mirage_cli.camera import Camera
 from mirage_cli.errors import InputError
@@ -363,7 +364,13 @@ def test_weak_data_warnings():
     assert "fronto-parallel" in text
     assert "image edge" in text
     good = calibrate(Detections(_projected_views(0.6), (640, 480), 12), Board(9, 6, 0.025))
-    assert not any("fronto" in w or "only" in w for w in good.warnings)
+    assert not any("fronto" in w or "only" in w or "folds" in w for w in good.warnings)
+    # the same views with a strong barrel term at a short focal length: the polynomial
+    # folds back 299 px out, inside the corners, and the warning says how much is lost
+    good.K = np.array([[440.0, 0, 319.5], [0, 440.0, 239.5], [0, 0, 1]])
+    good.dist = np.array([-0.3, -0.02, 0, 0, 0])
+    fold = [w for w in weak_data_warnings(good) if "folds back 299 px" in w]
+    assert len(fold) == 1 and "--model 8" in fold[0], weak_data_warnings(good)
 
 
 def test_corrupt_video(tmp_path):
