@@ -85,7 +85,7 @@ def tracking_camera(
         )
     camera = matching_camera(camera, *src.size)
     if (fold := lens_fold_warning(camera)) is not None:
-        reporter.echo(f"track: warning: {fold}; recalibrate with the board in the corners")
+        log.warning(f"{fold}; recalibrate with the board in the corners")
     return camera
 
 

@@ -178,15 +178,14 @@ class DetectionSchedule:
             return self._full_features(gray, detector)
         x0, y0, x1, y1, shrink = box
         crop = gray[y0:y1, x0:x1]
-        up = 1.0
         if shrink > 1:  # the landmark larger than in its keyframes: at their scale
             up = 1 / shrink
             crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_AREA)
-        elif self._upsamples(box) or self.full_scale < 1:  # small and far, or a coarser
-            # camera than the model's: finer features, as the keyframes hold
+        else:  # small and far, or a coarser camera than the model's: finer features
             small = self.settings.upsample_to_px / max(crop.shape) if self._upsamples(box) else 1
-            up = max(small, 1 / self.full_scale)
-            crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
+            up = max(small, 1 / self.full_scale, 1.0)
+            if up > 1:
+                crop = cv2.resize(crop, None, fx=up, fy=up, interpolation=cv2.INTER_CUBIC)
         kps, desc = detect(crop, detector)
         return kps / np.float32(up) + np.array([x0, y0], np.float32), desc
 
