@@ -6,7 +6,8 @@ distortion, keyframe and video distances and heights; see mirage_cli/families.py
 once and cached under benchmarks/.cache/. Each system gets the same model, built from the
 scene's keyframes with `build-model`'s defaults and the scene's true camera, and the same
 decoded frames (systems as in benchmarks/stress.py: mirage with its defaults, the plain
-OpenCV pipeline, the hloc-style pipeline).
+OpenCV pipeline, the hloc-style pipeline; `extend`: `mirage track --extend`, the model
+grown by the frames tracked well from new views and the rest tracked again).
 
 Seeds 0-99 are for tuning; seeds 1000-1029 are the report seeds, not looked at while
 developing. A wrong pose is an ok frame more than 10 cm or 5 deg off (far family: more
@@ -64,6 +65,8 @@ stress = _stress()
 from mirage_cli import __version__  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.families import FAMILIES  # noqa: E402
+from mirage_cli.frames import Frame  # noqa: E402
+from mirage_cli.pipelines.track import extended_records  # noqa: E402
 from mirage_cli.pose import Pose, rodrigues  # noqa: E402
 from mirage_cli.runtime import opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
@@ -75,7 +78,7 @@ REPORT_SEEDS = range(1000, 1030)
 FPS = 30.0
 IN_VIEW = 0.3
 WRONG_M, WRONG_DEG, WRONG_FAR_SHARE = 0.10, 5.0, 0.025
-SYSTEMS = ("mirage", "plain", "hloc", "hinted")
+SYSTEMS = ("mirage", "extend", "plain", "hloc", "hinted")
 
 
 def scene_folder(family: str, seed: int, frames: int, jobs: int) -> Path:
@@ -140,6 +143,19 @@ class HintedTracker(stress.Tracker):
         return super().process(gray, ahead)
 
 
+def run_extended(frames, tracker):
+    """`mirage track --extend`'s records (pipelines.track.extended_records), as
+    `stress.run_mirage` gives mirage's."""
+
+    def again():
+        return (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
+
+    t0 = time.perf_counter()
+    recs, _ = extended_records(again, tracker)
+    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
+    return out, time.perf_counter() - t0
+
+
 def run_scene(folder: Path, systems: list[str], overrides: dict | None = None) -> dict[str, dict]:
     """Each system on one scene; `overrides`: mirage's TrackSettings fields set (`--set`)."""
     camera = Camera.load(folder / "camera_truth.yaml")
@@ -159,6 +175,9 @@ def run_scene(folder: Path, systems: list[str], overrides: dict | None = None) -
         elif sy == "mirage":  # (without overrides: the defaults, as stress.run_mirage's)
             tracker = stress.Tracker(model, camera, settings)
             res, sec = stress.run_mirage(frames, model, camera, tracker=tracker)
+        elif sy == "extend":  # `mirage track --extend`: both passes and the build timed
+            tracker = stress.Tracker(model, camera, settings)
+            res, sec = run_extended(frames, tracker)
         else:
             res, sec = stress.SYSTEMS[sy](frames, model, camera)
         out[sy] = score(res, truth, target, recipe["family"] == "far", sec)
@@ -291,7 +310,7 @@ def main():
     results: dict[str, dict[str, dict[int, dict]]] = {f: {} for f in fams}
     peer_seeds = set(seeds[: args.peer_seeds])
     for (fam, seed), folder in folders.items():
-        run = [s for s in systems if s in ("mirage", "hinted") or seed in peer_seeds]
+        run = [s for s in systems if s in ("mirage", "extend", "hinted") or seed in peer_seeds]
         per = run_scene(folder, run, overrides)
         for sy, r in per.items():
             results[fam].setdefault(sy, {})[seed] = r
@@ -311,7 +330,11 @@ def main():
         "| worst seed pos / rot | fps median |"
     )
     lines = [header, "|" + "---|" * 12]
-    labels = {**stress.SYSTEM_LABELS, "hinted": "mirage, hinted when lost"}
+    labels = {
+        **stress.SYSTEM_LABELS,
+        "hinted": "mirage, hinted when lost",
+        "extend": "mirage --extend",
+    }
     if overrides:
         labels["mirage"] = "mirage (--set)"
     for fam in fams:

@@ -240,11 +240,17 @@ def view_change(poses: list[Pose], centre: np.ndarray | None = None) -> np.ndarr
         centre = look_at_point(poses)
     C = np.array([p.center for p in poses])
     A = np.array([p.R[2] for p in poses])
-    depth = np.maximum(np.linalg.norm(C - centre, axis=1), 1e-6)
-    axes = np.degrees(np.arccos(np.clip(A @ A.T, -1.0, 1.0)))
-    base = np.linalg.norm(C[:, None] - C[None], axis=2)
-    parallax = np.degrees(base / (0.5 * (depth[:, None] + depth[None])))
-    scale = np.degrees(np.abs(np.log(depth[:, None] / depth[None])))
+    return views_change(C, A, C, A, centre)
+
+
+def views_change(Ca, Aa, Cb, Ab, centre: np.ndarray) -> np.ndarray:
+    """(m, n) `view_change` between views a (camera centres, optical axes in W) and b."""
+    da = np.maximum(np.linalg.norm(Ca - centre, axis=1), 1e-6)
+    db = np.maximum(np.linalg.norm(Cb - centre, axis=1), 1e-6)
+    axes = np.degrees(np.arccos(np.clip(Aa @ Ab.T, -1.0, 1.0)))
+    base = np.linalg.norm(Ca[:, None] - Cb[None], axis=2)
+    parallax = np.degrees(base / (0.5 * (da[:, None] + db[None])))
+    scale = np.degrees(np.abs(np.log(da[:, None] / db[None])))
     return np.maximum(np.maximum(axes, parallax), scale)
 
 

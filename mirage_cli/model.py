@@ -404,6 +404,8 @@ class LandmarkModel(KeyframeRecognition):
         """What tracking needs before its first frame, found once here rather than at every
         `mirage track` start: the twins and ground tables and the recognition KD-trees."""
         tables = {"twins": self.twins().astype(np.uint8), "ground": self.ground().astype(np.uint8)}
+        if INHERITED_TABLE in self.tables:  # (an extended model's: not found again)
+            tables[INHERITED_TABLE] = np.asarray(self.tables[INHERITED_TABLE], np.float64)
         self.prepare_recognition()  # after the twins: the trees `track` built from them
         tables["recognition_index"] = _index_bytes(self._index[0])
         if self.has_tilted:  # the squashed views' trees: `track` built them at its first
@@ -716,7 +718,10 @@ TILTED_TREE_SEED = 0  # a fixed seed (as the twins'): the trees depend on the mo
 
 # what a model file may hold besides its keyframes and points (`_table_arrays`); a file
 # without them (made before) gets them built when first needed
-_TABLES = ("twins", "ground", "recognition_index", "tilt_recognition_index")
+# per point, the sigma (m, rad) it carries from the tracked frames that triangulated it, in
+# a model extended by a video (extend.py); absent: every point is the keyframes' own
+INHERITED_TABLE = "inherited"
+_TABLES = ("twins", "ground", "recognition_index", "tilt_recognition_index", INHERITED_TABLE)
 
 # arrays stored uncompressed and memory-mapped at load: a keyframe's descriptors are read
 # when it is first matched (SIFT's bytes compress to 80%: not worth inflating at every load);

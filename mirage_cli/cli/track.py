@@ -102,6 +102,12 @@ def format_options(f):
     help="A pose rolled more than DEG beyond every keyframe (the world's up in the image) "
     "is implausible, not ok; 180: never.",
 )
+@click.option(
+    "--extend",
+    is_flag=True,
+    help="Track twice: frames tracked well from views the keyframes lack (a drone above a "
+    "model made on foot) join the model, and the frames not ok are tracked again.",
+)
 @file_option("--overlay", help="Write a video with the landmark axes, inliers and status drawn.")
 @file_option(
     "--rerun",
@@ -127,6 +133,7 @@ def track_cmd(
     min_inliers,
     max_rmse,
     max_roll,
+    extend,
     overlay,
     rerun_path,
     **format_paths,
@@ -166,6 +173,7 @@ def track_cmd(
     job = open_job(
         model, src, out, camera_path, settings, start, end, reporter=ui, every=every,
         smooth=SmoothSettings(lag=smooth), formats=formats, overlay=overlay, rerun=rerun_path,
+        extend=extend,
     )  # fmt: skip
     result = run_track(job, reporter=ui)
     print_summary(result)
@@ -230,6 +238,8 @@ def print_summary(result: TrackResult) -> None:
     other = sorted(set(status) - {Status.OK.value, Status.LOST.value})
     if other:
         ui.echo("       " + ", ".join(f"{(status == s).sum()} {s}" for s in other))
+    if result.added:
+        ui.echo(f"       {result.added} tracked frames joined the model (--extend)")
     if ok.any():
         ui.echo(f"       median inliers {np.median(inl):.0f}, throughput {fps:.1f} frames/s")
     ui.echo(f"       poses written to {result.output}")

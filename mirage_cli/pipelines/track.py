@@ -11,8 +11,8 @@ import contextlib
 import os
 import threading
 import time
-from collections.abc import Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -21,6 +21,7 @@ import numpy as np
 from .. import refine, runtime, signals
 from ..camera import Camera, lens_fold_warning
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
+from ..extend import ViewPicker, can_extend, extended_model
 from ..fileio import atomic_path, video_frames_written
 from ..frames import Frame, FrameSource, matching_camera, prefetch
 from ..logs import log
@@ -49,6 +50,7 @@ class TrackJob:
     formats: dict[str, str] = field(default_factory=dict)  # format name -> file, e.g. tum
     overlay: str | None = None
     rerun: str | None = None
+    extend: bool = False  # track again against the model grown from the video (extend.py)
 
 
 @dataclass
@@ -60,6 +62,8 @@ class TrackResult:
     elapsed: float  # seconds of tracking (after the solver's warm-up)
     interrupted: KeyboardInterrupt | None = None  # raise it once the summary is out
     records: list[tuple] = field(default_factory=list)  # with verbose: see `refusal_lines`
+    written: list[FrameRecord] = field(default_factory=list)  # with --extend: every record
+    added: int = 0  # with --extend: tracked frames that joined the model
 
     @property
     def frames_per_s(self) -> float:
@@ -133,6 +137,37 @@ def tracked_records(
     return smoothed(track_frames(frames, tracker, keep_images), smoothing or SmoothSettings())
 
 
+def extended_records(
+    frames: Callable[[], Iterable[Frame]],
+    tracker: Tracker,
+    smoothing: SmoothSettings | None = None,
+) -> tuple[list[FrameRecord], LandmarkModel | None]:
+    """`tracked_records` with `--extend` (extend.py): the frames tracked once, the model
+    built again with the well-tracked frames from new views, and the frames that were not
+    ok tracked again against it; the first pass's ok records stand. `frames` gives the
+    frames anew for each pass. Also the extended model (None: nothing to add)."""
+    picker = ViewPicker(tracker.model)
+    first = list(_picking(frames(), tracker, smoothing, picker))
+    if (
+        not picker.views
+        or all(r.ok for r in first)
+        or can_extend(tracker.model, tracker.camera) is not None
+    ):
+        return first, None
+    model = extended_model(tracker.model, picker.views)
+    again = Tracker(model, tracker.camera, tracker.base_settings)
+    second = tracked_records(frames(), again, smoothing)
+    return [a if a.ok else b for a, b in zip(first, second, strict=True)], model
+
+
+def _picking(frames: Iterable[Frame], tracker, smoothing, picker: ViewPicker):
+    """`tracked_records`, offering each record to `picker` with its frame's image."""
+    held: dict = {}
+    for rec in tracked_records(_holding(frames, held), tracker, smoothing):
+        picker.offer(rec, held.pop(rec.frame, None))
+        yield rec
+
+
 _early: dict = {}
 
 
@@ -197,8 +232,36 @@ def track(job: TrackJob, reporter: Reporter = SILENT) -> TrackResult:
     runtime.keep_freed_memory()  # every detection's pyramid reuses the last one's pages
     points = job.tracker.model.points
     axis_m = float(np.ptp(points, axis=0).max() * 0.4) if len(points) else 0.2
-    result = _run(job, axis_m, reporter)
+    picker = ViewPicker(job.tracker.model) if job.extend else None
+    result = _run(job, axis_m, reporter, picker=picker)
     reporter.detail(f"stage tracking: {result.elapsed:.2f} s")
+    if picker is not None and result.interrupted is None:
+        result = _track_again(job, result, picker, axis_m, reporter)
+    return result
+
+
+def _track_again(job: TrackJob, first: TrackResult, picker: ViewPicker, axis_m, reporter):
+    """`--extend`'s second pass: the model built again with the picked frames, the frames
+    tracked again against it, and every output written again: the first pass's ok records
+    as they were, the second's for the rest (an interrupt keeps the first pass's rows
+    for the frames it did not reach)."""
+    tracker = job.tracker
+    why = can_extend(tracker.model, tracker.camera)
+    if why is None and not picker.views:
+        why = "no frame was tracked well from a view the keyframes lack"
+    if why is None and all(r.ok for r in first.written):
+        why = "every frame is already ok"
+    if why is not None:
+        reporter.echo(f"extend: {why}; the poses are the first pass's")
+        return first
+    t0 = time.perf_counter()
+    with reporter.stage(f"extend the model with {len(picker.views)} tracked frames"):
+        model = extended_model(tracker.model, picker.views)
+    reporter.detail(f"extended model: {len(model.keyframes)} keyframes, {len(model.points)} points")
+    again = replace(job, tracker=Tracker(model, tracker.camera, tracker.base_settings))
+    result = _run(again, axis_m, reporter, first=first.written)
+    result.elapsed = first.elapsed + time.perf_counter() - t0  # both passes, the build
+    result.added = len(picker.views)
     return result
 
 
@@ -206,11 +269,17 @@ def _outputs(job: TrackJob) -> list[tuple[str, str]]:
     return [(job.output, "csv")] + [(path, fmt) for fmt, path in job.formats.items() if path]
 
 
-def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
+def _run(
+    job: TrackJob,
+    axis_m: float,
+    reporter: Reporter,
+    picker: ViewPicker | None = None,
+    first: list[FrameRecord] | None = None,
+) -> TrackResult:
     """Run the tracker over the frames and write every record to every output as it comes.
     An interrupt keeps the finished frames (outputs renamed into place with further signals
-    held) and is returned."""
-    src, tracker, camera = job.source, job.tracker, job.tracker.camera
+    held) and is returned. `picker`, `first`: `--extend`'s first and second pass (`_Passes`)."""
+    src, tracker = job.source, job.tracker
     outputs = _outputs(job)
     total = None
     if src.count:
@@ -223,17 +292,7 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
     smoother = Smoother(job.smooth)
     t_start = time.perf_counter()
     with contextlib.ExitStack() as hold, contextlib.ExitStack() as stack:
-        # every format is offered the diagnostic columns; TUM's and KITTI's rows skip them
-        writers = [
-            stack.enter_context(TrajectoryWriter(path, fmt, TRACK_COLUMNS)) for path, fmt in outputs
-        ]
-        fps = src.fps / job.every if src.fps else 10.0
-        ov = None
-        if job.overlay:
-            ov = stack.enter_context(OverlayVideo(job.overlay, fps, camera, axis_m))
-        rrd = None
-        if job.rerun:
-            rrd = stack.enter_context(TrackRecording(job.rerun, tracker.model, camera))
+        writers, ov, rrd = _open_outputs(stack, job, outputs, axis_m)
         bar = stack.enter_context(reporter.progress(total, "tracking"))
         keep = ov is not None or rrd is not None  # the overlays draw on the colour image
         # decoded and grayed in the reader thread, a few frames ahead; a video's gray straight
@@ -241,9 +300,11 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
         # (their colour from a second decoder): --overlay never changes the poses
         # (test_deterministic_with_overlay)
         frames = prefetch(src.frames(job.first, job.last, job.every, luma=True, colour=keep))
+        passes = _Passes(picker, first)
+        frames = passes.holding(frames)
 
         def emit(records):
-            for rec in records:
+            for rec in passes(records):
                 # a record goes to every output or to none: a signal waits until it is out
                 # (else the overlay could hold a frame fewer than the CSV)
                 with signals.deferred():
@@ -271,6 +332,7 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
         except (KeyboardInterrupt, InputError) as e:  # (InputError: a damaged keyframe image)
             hold.enter_context(signals.deferred())  # a second signal waits for the files
             emit(smoother.flush())  # the frames already tracked are kept
+            emit(passes.rest())  # --extend's second pass: the first's rows for the rest
             if not writers[0].rows:
                 signals.note(e, f"no frame finished; {outputs[0][0]} not written")
                 raise
@@ -285,7 +347,56 @@ def _run(job: TrackJob, axis_m: float, reporter: Reporter) -> TrackResult:
     elapsed = time.perf_counter() - t_start
     if interrupted is not None:
         signals.note(interrupted, f"kept {writers[0].rows} frames in {outputs[0][0]}")
-    return TrackResult(job.output, done, elapsed, interrupted, decided)
+    return TrackResult(job.output, done, elapsed, interrupted, decided, passes.written)
+
+
+def _open_outputs(stack, job: TrackJob, outputs, axis_m: float):
+    """The trajectory writers (every format is offered the diagnostic columns; TUM's and
+    KITTI's rows skip them), the overlay video and the Rerun recording (None: not asked)."""
+    camera, src = job.tracker.camera, job.source
+    writers = [stack.enter_context(TrajectoryWriter(p, f, TRACK_COLUMNS)) for p, f in outputs]
+    fps = src.fps / job.every if src.fps else 10.0
+    ov = rrd = None
+    if job.overlay:
+        ov = stack.enter_context(OverlayVideo(job.overlay, fps, camera, axis_m))
+    if job.rerun:
+        rrd = stack.enter_context(TrackRecording(job.rerun, job.tracker.model, camera))
+    return writers, ov, rrd
+
+
+class _Passes:
+    """`--extend` in `_run`: the first pass offers each record with its grey frame to the
+    picker and keeps it (without its images); the second writes the first's ok records
+    in place of its own, and, when interrupted, the first's records for the rest."""
+
+    def __init__(self, picker: ViewPicker | None, first: list[FrameRecord] | None):
+        self.picker, self.first = picker, first
+        self.written: list[FrameRecord] = []
+        self.held: dict = {}  # the grey frames the smoother still holds
+        self.n = 0
+
+    def holding(self, frames: Iterable[Frame]) -> Iterable[Frame]:
+        return frames if self.picker is None else _holding(frames, self.held)
+
+    def __call__(self, records: Iterable[FrameRecord]) -> Iterator[FrameRecord]:
+        for rec in records:
+            if self.picker is not None:
+                self.picker.offer(rec, self.held.pop(rec.frame, None))
+                self.written.append(replace(rec, image=None, measurement=None))
+            elif self.first is not None and self.n < len(self.first) and self.first[self.n].ok:
+                rec = replace(self.first[self.n], image=rec.image)  # the first pass's stands
+            self.n += 1
+            yield rec
+
+    def rest(self) -> list[FrameRecord]:
+        return [] if self.first is None else self.first[self.n :]
+
+
+def _holding(frames: Iterable[Frame], held: dict) -> Iterator[Frame]:
+    """The frames, each one's grey image also kept in `held` by frame id."""
+    for f in frames:
+        held[f.id] = f.image
+        yield f
 
 
 def nothing_found(result: TrackResult) -> None:

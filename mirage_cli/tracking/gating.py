@@ -6,9 +6,11 @@ trust (else `uncertain`); and the pose's covariances (`frame_covariances`). A mi
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..camera import Camera
 from ..evidence import chance_inlier_probability, is_evidence, search_area
+from ..model import INHERITED_TABLE
 from ..records import FrameRecord, Measurement, Reason, Status
 from ..solver import (
     PoseEstimate,
@@ -70,6 +72,7 @@ class PoseGate:
     """The gate and the covariances of a pose (a mixin of Tracker)."""
 
     _kf_rolls: np.ndarray | None = None  # the keyframes' rolls (`_implausible`), when asked
+    _inherit_tree: tuple | None = None  # the points an extension carried, when asked
 
     def _covariances(
         self, est: PoseEstimate, n: int, points=None, patched: bool = False, dispute=None
@@ -84,7 +87,30 @@ class PoseGate:
             k = self.settings.patch_error_points
             floor = self.settings.patch_error_floor if self._shrunk_view(est) else 1.0
             res = res * max(floor, n / k)
+        inherited = self._inherited_covariance(est, points)
+        if inherited is not None:
+            shared = shared + inherited
         return (res if dispute is None else res + dispute), shared
+
+    def _inherited_covariance(self, est: PoseEstimate, points) -> np.ndarray | None:
+        """The error a pose shares with the tracked frames its points were triangulated
+        from (a model extended by the video, extend.py): their sigma, weighted by the
+        share of its inliers on such points (isotropic; None: none of them)."""
+        table = self.model.tables.get(INHERITED_TABLE)
+        if table is None or points is None or not est.success:
+            return None
+        if self._inherit_tree is None:
+            carried = np.flatnonzero(table[:, 0] > 0)
+            self._inherit_tree = (cKDTree(self.model.points[carried]), table[carried])
+        tree, sig = self._inherit_tree
+        if not len(sig):
+            return None
+        d, i = tree.query(points[0][est.inliers], distance_upper_bound=1e-9)
+        hit = np.isfinite(d)
+        if not hit.any():
+            return None
+        sp, sr = sig[i[hit]].sum(axis=0) / max(int(est.inliers.sum()), 1)
+        return np.diag([sr**2 / 3] * 3 + [sp**2 / 3] * 3)
 
     def _shrunk_view(self, est: PoseEstimate) -> bool:
         """Does the frame show the landmark at most 1 / `patch_floor_ratio` of its size in
