@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import SAMPLE, run_mirage
+from conftest import SAMPLE, assert_one_line_error, run_mirage
 
 from mirage_cli.camera import Camera
 from mirage_cli.extend import ViewPicker, can_extend, inherited_sigmas
@@ -19,6 +19,7 @@ from mirage_cli.records import FrameRecord, Status
 from mirage_cli.synth import LANDMARK_TARGET
 from mirage_cli.tracking import Tracker, TrackSettings
 from mirage_cli.tracking.smooth import SmoothSettings
+from mirage_cli.trajectory import row_pose
 
 
 def test_points_only_the_added_frames_triangulate_carry_their_sigma():
@@ -107,7 +108,7 @@ def climb(sample_model):
 
     plain = list(tracked_records(frames(), Tracker(model, cam, TrackSettings()), SmoothSettings()))
     extended, grown = extended_records(frames, Tracker(model, cam, TrackSettings()))
-    return SimpleNamespace(elevations=elevations, poses=poses, plain=plain,
+    return SimpleNamespace(elevations=elevations, poses=poses, grays=grays, plain=plain,
                            extended=extended, model=grown)  # fmt: skip
 
 
@@ -165,3 +166,29 @@ def test_track_extend_on_footage_the_keyframes_already_cover(sample_model, tmp_p
             assert "extend: " in p.stdout, p.stdout
     cols = ["frame", "status", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz", "sigma_pos_m"]
     pd.testing.assert_frame_equal(rows["plain"][cols], rows["extend"][cols])
+
+
+def test_track_extend_writes_every_frame_and_the_grown_model(climb, sample_model, tmp_path):
+    """The climb as an image folder through the command: one CSV with every frame ok
+    within 1 cm (the plain run loses those above 65 deg), the grown model written where
+    asked, and --extended-model without --extend refused in one line."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i, g in enumerate(climb.grays):
+        cv2.imwrite(str(frames / f"{i:06d}.png"), g)
+    out, grown = tmp_path / "poses.csv", tmp_path / "grown.mirage"
+    args = ("track", frames, "--model", sample_model, "--camera", SAMPLE / "camera_truth.yaml",
+            "--fps", "30", "-o", out)  # fmt: skip
+    p = run_mirage(*args, "--extend", "--extended-model", grown)
+    assert p.returncode == 0, p.stderr
+    assert "tracked frames joined the model (--extend)" in p.stdout, p.stdout
+    rows = pd.read_csv(out)
+    assert len(rows) == len(climb.poses) and (rows["status"] == "ok").all(), rows["status"]
+    for (_, row), truth in zip(rows.iterrows(), climb.poses, strict=True):
+        assert row_pose(row).distance_to(truth) < 0.01
+    model = LandmarkModel.load(grown)
+    assert model.meta["extended"]["keyframes"] == len(LandmarkModel.load(sample_model).keyframes)
+    assert (model.tables[INHERITED_TABLE][:, 0] > 0).any()
+    bad = run_mirage(*args[:-1], tmp_path / "again.csv", "--extended-model", tmp_path / "m")
+    assert_one_line_error(bad, 2, "--extend")
+    assert not (tmp_path / "again.csv").exists()

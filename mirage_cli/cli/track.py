@@ -7,6 +7,7 @@ from collections import Counter
 import click
 import numpy as np
 
+from ..errors import OptionError
 from ..fileio import check_writable, refuse_overwrite, require_file
 from ..frames import FrameSource, with_topic
 from ..model import LandmarkModel
@@ -108,6 +109,11 @@ def format_options(f):
     help="Track twice: frames tracked well from views the keyframes lack (a drone above a "
     "model made on foot) join the model, and the frames not ok are tracked again.",
 )
+@file_option(
+    "--extended-model",
+    "extended_path",
+    help="With --extend: also write the grown model (its next flight starts from it).",
+)
 @file_option("--overlay", help="Write a video with the landmark axes, inliers and status drawn.")
 @file_option(
     "--rerun",
@@ -134,6 +140,7 @@ def track_cmd(
     max_rmse,
     max_roll,
     extend,
+    extended_path,
     overlay,
     rerun_path,
     **format_paths,
@@ -143,13 +150,16 @@ def track_cmd(
     Example: mirage track orbit.mp4 --model landmark.mirage --camera camera.yaml -o poses.csv
     """
     formats = {name: path for name, path in format_paths.items() if path}  # format -> file
+    if extended_path and not extend:
+        raise OptionError("needs --extend (the model is grown by it)", "--extended-model")
     refuse_overwrite(
         {"-o": output, "--overlay": overlay, "--rerun": rerun_path}
+        | {"--extended-model": extended_path}
         | {FORMATS[n].flag: p for n, p in formats.items()},
         {"VIDEO": video, "--model": model_path, "--camera": camera_path},
     )
     out = check_writable(output)
-    for extra in (overlay, rerun_path, *formats.values()):
+    for extra in (overlay, rerun_path, extended_path, *formats.values()):
         if extra:
             check_writable(extra)
     if rerun_path:
@@ -173,7 +183,7 @@ def track_cmd(
     job = open_job(
         model, src, out, camera_path, settings, start, end, reporter=ui, every=every,
         smooth=SmoothSettings(lag=smooth), formats=formats, overlay=overlay, rerun=rerun_path,
-        extend=extend,
+        extend=extend, extended_model=extended_path and check_writable(extended_path),
     )  # fmt: skip
     result = run_track(job, reporter=ui)
     print_summary(result)

@@ -51,6 +51,7 @@ class TrackJob:
     overlay: str | None = None
     rerun: str | None = None
     extend: bool = False  # track again against the model grown from the video (extend.py)
+    extended_model: Path | None = None  # with `extend`: where to save the grown model
 
 
 @dataclass
@@ -258,6 +259,9 @@ def _track_again(job: TrackJob, first: TrackResult, picker: ViewPicker, axis_m, 
     with reporter.stage(f"extend the model with {len(picker.views)} tracked frames"):
         model = extended_model(tracker.model, picker.views)
     reporter.detail(f"extended model: {len(model.keyframes)} keyframes, {len(model.points)} points")
+    if job.extended_model is not None:
+        model.save(job.extended_model)
+        reporter.echo(f"extend: the grown model written to {job.extended_model}")
     again = replace(job, tracker=Tracker(model, tracker.camera, tracker.base_settings))
     result = _run(again, axis_m, reporter, first=first.written)
     result.elapsed = first.elapsed + time.perf_counter() - t0  # both passes, the build
