@@ -11,7 +11,7 @@ from conftest import SAMPLE, assert_one_line_error, run_mirage
 
 from mirage_cli.camera import Camera
 from mirage_cli.extend import ViewPicker, can_extend, inherited_sigmas
-from mirage_cli.frames import Frame
+from mirage_cli.frames import Frame, FrameSource
 from mirage_cli.model import INHERITED_TABLE, LandmarkModel
 from mirage_cli.pipelines.track import extended_records, tracked_records
 from mirage_cli.pose import look_at
@@ -96,20 +96,25 @@ def _climb(elevations, azimuth_deg=40.0, dist=1.5):
 
 
 @pytest.fixture(scope="module")
-def climb(sample_model):
+def climb(sample_model, tmp_path_factory):
     """A camera climbing from 20 to 80 deg above the landmark (the sample's keyframes look
-    from 13 deg): tracked plainly, then with the model extended."""
+    from 13 deg), as an image folder: tracked plainly (the API), then by `mirage track
+    --extend --extended-model` (one build of the grown model for the module)."""
     elevations = np.linspace(20, 80, 13)
     cam, poses, grays = _climb(elevations)
     model = LandmarkModel.load(sample_model)
-
-    def frames():
-        return (Frame(i, i, i / 30, g) for i, g in enumerate(grays))
-
-    plain = list(tracked_records(frames(), Tracker(model, cam, TrackSettings()), SmoothSettings()))
-    extended, grown = extended_records(frames, Tracker(model, cam, TrackSettings()))
-    return SimpleNamespace(elevations=elevations, poses=poses, grays=grays, plain=plain,
-                           extended=extended, model=grown)  # fmt: skip
+    frames = (Frame(i, i, i / 30, g) for i, g in enumerate(grays))
+    plain = list(tracked_records(frames, Tracker(model, cam, TrackSettings()), SmoothSettings()))
+    tmp = tmp_path_factory.mktemp("climb")
+    (tmp / "frames").mkdir()
+    for i, g in enumerate(grays):
+        cv2.imwrite(str(tmp / "frames" / f"{i:06d}.png"), g)
+    args = ("track", tmp / "frames", "--model", sample_model, "--camera",
+            SAMPLE / "camera_truth.yaml", "--fps", "30")  # fmt: skip
+    p = run_mirage(*args, "-o", tmp / "poses.csv", "--extend", "--extended-model", tmp / "g.mirage")
+    return SimpleNamespace(elevations=elevations, poses=poses, plain=plain, run=p, args=args,
+                           rows=pd.read_csv(tmp / "poses.csv") if p.returncode == 0 else None,
+                           grown=tmp / "g.mirage")  # fmt: skip
 
 
 def test_a_camera_climbing_past_the_keyframes_reach_is_tracked_with_extend(climb):
@@ -117,29 +122,40 @@ def test_a_camera_climbing_past_the_keyframes_reach_is_tracked_with_extend(climb
     no keyframe's view); with the frames it tracked on the way up joined to the model,
     every frame is ok within 1 cm and 0.5 deg, and those found only now within 3 of their
     own sigmas: the points only the added frames see carry their pose error
-    (`inherited_sigmas`)."""
+    (`inherited_sigmas`). The first pass's ok poses stand as they were."""
+    assert climb.run.returncode == 0, climb.run.stderr
+    assert "tracked frames joined the model (--extend)" in climb.run.stdout, climb.run.stdout
     plain_ok = np.array([r.ok for r in climb.plain])
     assert not plain_ok[climb.elevations >= 70].any(), plain_ok
     assert plain_ok[climb.elevations <= 50].all(), plain_ok
-    assert climb.model is not None and climb.model.meta["extended"]["frames"]
-    for r, truth, before in zip(climb.extended, climb.poses, plain_ok, strict=True):
-        assert r.ok, r
-        pos, rot = r.pose.distance_to(truth), r.pose.angle_to(truth)
+    rows = climb.rows
+    assert len(rows) == len(climb.poses) and (rows["status"] == "ok").all(), rows["status"]
+    for (_, row), truth, before in zip(rows.iterrows(), climb.poses, climb.plain, strict=True):
+        pose = row_pose(row)
+        pos, rot = pose.distance_to(truth), pose.angle_to(truth)
         assert pos < 0.01 and rot < 0.5, (pos, rot)
-        if not before:  # found against the added frames' points: as uncertain as they are
-            assert pos < 3 * r.sigma_pos_m and rot < 3 * r.sigma_rot_deg, (pos, r.sigma_pos_m)
-    for a, b in zip(climb.plain, climb.extended, strict=True):
-        if a.ok:  # the first pass's ok poses stand as they were
-            assert b.pose.distance_to(a.pose) == 0.0
+        if before.ok:  # the first pass's stands
+            assert pose.distance_to(before.pose) < 1e-5 and pose.angle_to(before.pose) < 1e-3
+        else:  # found against the added frames' points: as uncertain as they are
+            assert pos < 3 * row["sigma_pos_m"] and rot < 3 * row["sigma_rot_deg"], (pos, row)
 
 
-def test_an_extended_model_keeps_its_inherited_sigmas_in_its_file(climb, tmp_path):
-    table = climb.model.tables[INHERITED_TABLE]
+def test_an_extended_model_keeps_its_inherited_sigmas_in_its_file(climb, sample_model, tmp_path):
+    model = LandmarkModel.load(climb.grown)
+    n_own = len(LandmarkModel.load(sample_model).keyframes)
+    assert model.meta["extended"]["keyframes"] == n_own < len(model.keyframes)
+    table = model.tables[INHERITED_TABLE]
     assert (table[:, 0] > 0).any() and (table[:, 0] == 0).any()
-    climb.model.save(tmp_path / "grown.mirage")
-    back = LandmarkModel.load(tmp_path / "grown.mirage")
+    model.save(tmp_path / "again.mirage")
+    back = LandmarkModel.load(tmp_path / "again.mirage")
     np.testing.assert_array_equal(back.tables[INHERITED_TABLE], table)
-    assert back.meta["extended"]["frames"] == climb.model.meta["extended"]["frames"]
+    assert back.meta["extended"]["frames"] == model.meta["extended"]["frames"]
+
+
+def test_the_extended_model_option_needs_extend(climb, tmp_path):
+    bad = run_mirage(*climb.args, "-o", tmp_path / "p.csv", "--extended-model", tmp_path / "m")
+    assert_one_line_error(bad, 2, "--extend")
+    assert not (tmp_path / "p.csv").exists()
 
 
 def test_a_model_without_keyframe_images_cannot_be_extended(sample_model):
@@ -152,43 +168,19 @@ def test_a_model_without_keyframe_images_cannot_be_extended(sample_model):
     assert "keyframe images" in can_extend(model, model.camera)
 
 
-def test_track_extend_on_footage_the_keyframes_already_cover(sample_model, tmp_path):
-    """The sample orbit flies where the keyframes were taken: `--extend` says why it does
-    not build again, and writes the same poses as a plain run."""
-    rows = {}
-    for label, extra in (("plain", ()), ("extend", ("--extend",))):
-        out = tmp_path / f"{label}.csv"
-        p = run_mirage("track", SAMPLE / "orbit.mp4", "--model", sample_model, "--end", "60",
-                       "-o", out, *extra)  # fmt: skip
-        assert p.returncode == 0, p.stderr
-        rows[label] = pd.read_csv(out)
-        if extra:
-            assert "extend: " in p.stdout, p.stdout
-    cols = ["frame", "status", "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz", "sigma_pos_m"]
-    pd.testing.assert_frame_equal(rows["plain"][cols], rows["extend"][cols])
+def test_extending_footage_the_keyframes_already_cover_changes_nothing(sample_model):
+    """The sample orbit's first 60 frames fly where the keyframes were taken, every one
+    ok: `extended_records` builds nothing and gives the plain run's records."""
+    cam = Camera.load(SAMPLE / "camera_truth.yaml")
+    model = LandmarkModel.load(sample_model)
+    src = FrameSource([SAMPLE / "orbit.mp4"])
+    images = [f.image for f in src.frames(0, 60)]
 
+    def frames():
+        return (Frame(i, i, i / 30, g) for i, g in enumerate(images))
 
-def test_track_extend_writes_every_frame_and_the_grown_model(climb, sample_model, tmp_path):
-    """The climb as an image folder through the command: one CSV with every frame ok
-    within 1 cm (the plain run loses those above 65 deg), the grown model written where
-    asked, and --extended-model without --extend refused in one line."""
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i, g in enumerate(climb.grays):
-        cv2.imwrite(str(frames / f"{i:06d}.png"), g)
-    out, grown = tmp_path / "poses.csv", tmp_path / "grown.mirage"
-    args = ("track", frames, "--model", sample_model, "--camera", SAMPLE / "camera_truth.yaml",
-            "--fps", "30", "-o", out)  # fmt: skip
-    p = run_mirage(*args, "--extend", "--extended-model", grown)
-    assert p.returncode == 0, p.stderr
-    assert "tracked frames joined the model (--extend)" in p.stdout, p.stdout
-    rows = pd.read_csv(out)
-    assert len(rows) == len(climb.poses) and (rows["status"] == "ok").all(), rows["status"]
-    for (_, row), truth in zip(rows.iterrows(), climb.poses, strict=True):
-        assert row_pose(row).distance_to(truth) < 0.01
-    model = LandmarkModel.load(grown)
-    assert model.meta["extended"]["keyframes"] == len(LandmarkModel.load(sample_model).keyframes)
-    assert (model.tables[INHERITED_TABLE][:, 0] > 0).any()
-    bad = run_mirage(*args[:-1], tmp_path / "again.csv", "--extended-model", tmp_path / "m")
-    assert_one_line_error(bad, 2, "--extend")
-    assert not (tmp_path / "again.csv").exists()
+    plain = list(tracked_records(frames(), Tracker(model, cam, TrackSettings())))
+    got, grown = extended_records(frames, Tracker(model, cam, TrackSettings()))
+    assert grown is None and all(r.ok for r in plain)
+    for a, b in zip(plain, got, strict=True):
+        assert a.pose.distance_to(b.pose) == 0.0 and a.sigma_pos_m == b.sigma_pos_m
