@@ -65,8 +65,6 @@ stress = _stress()
 from mirage_cli import __version__  # noqa: E402
 from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.families import FAMILIES  # noqa: E402
-from mirage_cli.frames import Frame  # noqa: E402
-from mirage_cli.pipelines.track import extended_records  # noqa: E402
 from mirage_cli.pose import Pose, rodrigues  # noqa: E402
 from mirage_cli.runtime import opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.trajectory import read_pose_csv, row_pose  # noqa: E402
@@ -143,19 +141,6 @@ class HintedTracker(stress.Tracker):
         return super().process(gray, ahead)
 
 
-def run_extended(frames, tracker):
-    """`mirage track --extend`'s records (pipelines.track.extended_records), as
-    `stress.run_mirage` gives mirage's."""
-
-    def again():
-        return (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
-
-    t0 = time.perf_counter()
-    recs, _ = extended_records(again, tracker)
-    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
-    return out, time.perf_counter() - t0
-
-
 def run_scene(folder: Path, systems: list[str], overrides: dict | None = None) -> dict[str, dict]:
     """Each system on one scene; `overrides`: mirage's TrackSettings fields set (`--set`)."""
     camera = Camera.load(folder / "camera_truth.yaml")
@@ -177,7 +162,7 @@ def run_scene(folder: Path, systems: list[str], overrides: dict | None = None) -
             res, sec = stress.run_mirage(frames, model, camera, tracker=tracker)
         elif sy == "extend":  # `mirage track --extend`: both passes and the build timed
             tracker = stress.Tracker(model, camera, settings)
-            res, sec = run_extended(frames, tracker)
+            res, sec = stress.run_extended(frames, model, camera, tracker=tracker)
         else:
             res, sec = stress.SYSTEMS[sy](frames, model, camera)
         out[sy] = score(res, truth, target, recipe["family"] == "far", sec)

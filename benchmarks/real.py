@@ -193,11 +193,11 @@ def score(results, truth, seconds) -> dict:
 
 def main():
     st = _stress()
-    systems_all = dict(st.SYSTEMS)
-    labels = dict(st.SYSTEM_LABELS)
+    systems_all = {**st.SYSTEMS, "extend": st.run_extended}  # (extend: on request)
+    labels = {**st.SYSTEM_LABELS, "extend": "mirage --extend"}
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", default=None, help="real sets by folder name (default: all)")
-    ap.add_argument("--systems", default=",".join(systems_all))
+    ap.add_argument("--systems", default=",".join(st.SYSTEMS), help=", ".join(systems_all))
     ap.add_argument("--no-forward", action="store_true", help="skip the synthetic scene")
     ap.add_argument("--jobs", type=int, default=2, help="render processes (first run only)")
     ap.add_argument("--shrink", default="2,3", help="also each real set's frames shrunk by")

@@ -60,7 +60,7 @@ from mirage_cli.camera import Camera  # noqa: E402
 from mirage_cli.features import detect, make_detector  # noqa: E402
 from mirage_cli.frames import Frame, FrameSource  # noqa: E402
 from mirage_cli.model import LandmarkModel  # noqa: E402
-from mirage_cli.pipelines.track import tracked_records  # noqa: E402
+from mirage_cli.pipelines.track import extended_records, tracked_records  # noqa: E402
 from mirage_cli.pose import Pose  # noqa: E402
 from mirage_cli.runtime import keep_freed_memory, opencv_threads_for_two_callers  # noqa: E402
 from mirage_cli.synth import LANDMARK_TARGET  # noqa: E402
@@ -201,6 +201,20 @@ def run_mirage(frames, model, camera, lag=SmoothSettings.lag, tracker=None):
     held = (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
     t0 = time.perf_counter()
     recs = tracked_records(held, tr, SmoothSettings(lag=lag))
+    out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
+    return out, time.perf_counter() - t0
+
+
+def run_extended(frames, model, camera, tracker=None):
+    """`mirage track --extend` (pipelines.track.extended_records): both passes and the
+    model's build timed; not among `SYSTEMS` (generalize.py and real.py offer it)."""
+    tr = Tracker(model, camera, TrackSettings()) if tracker is None else tracker
+
+    def again():
+        return (Frame(i, i, i / FPS, f) for i, f in enumerate(frames))
+
+    t0 = time.perf_counter()
+    recs, _ = extended_records(again, tr)
     out = [(r.pose if r.ok else None, r.sigma_pos_m, r.sigma_rot_deg) for r in recs]
     return out, time.perf_counter() - t0
 

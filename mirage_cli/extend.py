@@ -43,7 +43,8 @@ SPACING_DEG = 6.0  # a frame joins when its view differs this much from every ot
 MAX_SIGMA_SHARE = 0.01  # ... and its position sigma is at most this share of its range
 MIN_RUN = 10  # ... and it is inside a run of this many ok frames (`ViewPicker`)
 # `_depth_gain`: above tuning seeds 4 / 18 / 27, honesty 2.23 / 1.71 / 1.46 with none,
-# 1.58 / 1.60 / 1.43 with these (15 deg and 3x: seeds 3 and 4 lost what they had gained)
+# 1.58 / 1.60 / 1.43 with these (15 deg and 3x: seeds 3 and 4 lost what they had gained;
+# all before the added frames' patches were left out, then 4 / 18: 1.60 / 1.61)
 NARROW_DEG = 10.0
 MAX_GAIN = 2.0
 MAX_VIEWS = 36  # at most this many frames join (a turn of the video at the spacing)
@@ -133,6 +134,16 @@ def can_extend(model: LandmarkModel, camera: Camera) -> str | None:
     return None
 
 
+def why_not_extend(model: LandmarkModel, camera: Camera, picker: ViewPicker, records) -> str | None:
+    """Why the first pass's `records` are final (None: extend and track again)."""
+    why = can_extend(model, camera)
+    if why is None and not picker.views:
+        why = "no frame was tracked well from a view the keyframes lack"
+    if why is None and all(r.ok for r in records):
+        why = "every frame is already ok"
+    return why
+
+
 def extended_model(model: LandmarkModel, views: list[TrackedView]) -> LandmarkModel:
     """The model built again from its keyframes and the tracked views, with the build
     settings it was made with, and each point's inherited sigma (`INHERITED_TABLE`)."""
@@ -164,9 +175,9 @@ def extended_model(model: LandmarkModel, views: list[TrackedView]) -> LandmarkMo
 
 def _keyframes_own_points(model: LandmarkModel, n_base: int) -> None:
     """Each point two or more of the first `n_base` keyframes see is triangulated from
-    those alone, in place: the added frames' pose errors (1% of a far view's range is 4
-    cm) would otherwise pull the points the model had right (far tuning seed 17: frames
-    tracked again 3% of the range off at 0.8% sigma)."""
+    those alone, in place, as the model had it: an added frame's pose error (1% of a far
+    view's range is 4 cm) is not theirs to carry. (A safeguard: on far tuning seed 17 it
+    changed nothing measurable; that seed's bias was the added frames' patches.)"""
     obs = model.point_observations
     pt, kf, feat = (np.asarray(obs[k], np.int64) for k in ("point", "keyframe", "feature"))
     own = kf < n_base

@@ -21,7 +21,7 @@ import numpy as np
 from .. import refine, runtime, signals
 from ..camera import Camera, lens_fold_warning
 from ..errors import EnvironmentFailure, InputError, NothingFound, OutputError
-from ..extend import ViewPicker, can_extend, extended_model
+from ..extend import ViewPicker, extended_model, why_not_extend
 from ..fileio import atomic_path, video_frames_written
 from ..frames import Frame, FrameSource, matching_camera, prefetch
 from ..logs import log
@@ -149,11 +149,7 @@ def extended_records(
     frames anew for each pass. Also the extended model (None: nothing to add)."""
     picker = ViewPicker(tracker.model)
     first = list(_picking(frames(), tracker, smoothing, picker))
-    if (
-        not picker.views
-        or all(r.ok for r in first)
-        or can_extend(tracker.model, tracker.camera) is not None
-    ):
+    if why_not_extend(tracker.model, tracker.camera, picker, first) is not None:
         return first, None
     model = extended_model(tracker.model, picker.views)
     again = Tracker(model, tracker.camera, tracker.base_settings)
@@ -247,11 +243,7 @@ def _track_again(job: TrackJob, first: TrackResult, picker: ViewPicker, axis_m, 
     as they were, the second's for the rest (an interrupt keeps the first pass's rows
     for the frames it did not reach)."""
     tracker = job.tracker
-    why = can_extend(tracker.model, tracker.camera)
-    if why is None and not picker.views:
-        why = "no frame was tracked well from a view the keyframes lack"
-    if why is None and all(r.ok for r in first.written):
-        why = "every frame is already ok"
+    why = why_not_extend(tracker.model, tracker.camera, picker, first.written)
     if why is not None:
         reporter.echo(f"extend: {why}; the poses are the first pass's")
         return first
